@@ -1,0 +1,79 @@
+"""The streaming action buffer (paper Sec. "Action Buffer", Algorithm 1, Eq. 3-4 and the action
+primers of Sec. "Initializing the action buffer"; sdp-algorithm.md, section 7).
+
+The buffer holds one partially denoised action sequence per environment, normalised, shape
+(B, horizon, A). At the start of every call its slots sit at ``geometry.start_levels`` (chunk i at
+(i+1)*s steps remaining). ``advance`` runs exactly s = N/h denoiser calls, which makes chunk 0
+clean, pops it, and shifts: the old chunks move down one place (each now one band cleaner, which is
+exactly the start pattern), a chunk of N(0, I) is appended at level N, and the past-action slots,
+now holding actions already executed, are re-noised to chunk 0's level, because training corrupts
+past slots at chunk 0's level too (the authors' code left them clean but labelled noisy).
+"""
+
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from .geometry import ChunkGeometry
+from .schedule import PerSlotSchedule
+
+# (noisy sequence (B, T, A), training timesteps (B, T)) -> model output (B, T, A)
+Denoiser = Callable[[Tensor, Tensor], Tensor]
+
+
+def run_reverse_steps(
+    schedule: PerSlotSchedule, denoiser: Denoiser, sample: Tensor, k_start: Tensor, n_steps: int
+) -> Tensor:
+    """Apply ``n_steps`` reverse steps from per-slot steps-remaining ``k_start`` (T,)."""
+    batch = sample.shape[0]
+    for j in range(n_steps):
+        k = (k_start - j).clamp(min=0)
+        model_output = denoiser(sample, schedule.train_timesteps(k).expand(batch, -1))
+        sample = schedule.step(model_output, k.expand(batch, -1), sample)
+    return sample
+
+
+class StreamingBuffer:
+    """Persistent buffer of future actions at increasing noise levels. Plain object state: it is
+    never part of the model's state dict and is dropped by ``clear`` (episode end, batch change)."""
+
+    def __init__(self, geometry: ChunkGeometry, schedule: PerSlotSchedule):
+        self.geometry = geometry
+        self.schedule = schedule
+        self.sample: Tensor | None = None
+
+    @property
+    def batch_size(self) -> int | None:
+        return None if self.sample is None else self.sample.shape[0]
+
+    def clear(self) -> None:
+        self.sample = None
+
+    def _start_timesteps(self, device: torch.device) -> Tensor:
+        return self.schedule.train_timesteps(self.geometry.start_levels.to(device))
+
+    def prime(self, primer: Tensor) -> None:
+        """Noise a clean (normalised) primer sequence (B, T, A) to the start levels (paper Eq. 4)."""
+        t = self._start_timesteps(primer.device).expand(primer.shape[0], -1)
+        self.sample = self.schedule.add_noise(primer, torch.randn_like(primer), t)
+
+    def advance(self, denoiser: Denoiser) -> Tensor:
+        """Run s denoiser calls, pop the now clean chunk (B, Tb, A) and roll the buffer forward."""
+        if self.sample is None:
+            raise RuntimeError("The streaming buffer is empty: call prime() after reset().")
+        g = self.geometry
+        k_start = g.start_levels.to(self.sample.device)
+        sample = run_reverse_steps(self.schedule, denoiser, self.sample, k_start, g.steps_per_call)
+        chunk = sample[:, g.executed]
+        self.sample = self._shift(sample)
+        return chunk
+
+    def _shift(self, sample: Tensor) -> Tensor:
+        g = self.geometry
+        kept = sample[:, g.chunk_len : g.n_past + g.n_future]  # past slots, then chunks 1..h-1
+        past, rest = kept[:, : g.n_past], kept[:, g.n_past :]
+        chunk0_t = self._start_timesteps(sample.device)[: g.n_past].expand(sample.shape[0], -1)
+        past = self.schedule.add_noise(past, torch.randn_like(past), chunk0_t)
+        tail = torch.randn_like(sample[:, : g.chunk_len + g.n_pad])  # new last chunk + padding, level N
+        return torch.cat([past, rest, tail], dim=1)

@@ -1,0 +1,213 @@
+"""Configuration of Streaming Diffusion Policy (`--policy.type=sdp`).
+
+Field names are LeRobot Diffusion Policy's wherever the meaning is the same, so a DP command line
+carries over; SDP adds `n_chunks` (the paper's h), `action_primer`, `noise_schemes` and EMA. The
+horizon is not a field: it follows from n_obs_steps, n_action_steps and n_chunks (see
+`geometry.ChunkGeometry`) and is reported in the log. Fields are a saved format: renaming or
+removing one breaks loading older checkpoints.
+"""
+
+import logging
+from dataclasses import dataclass, field
+
+from lerobot.configs import NormalizationMode, PreTrainedConfig
+from lerobot.optim import AdamConfig, DiffuserSchedulerConfig
+
+from .geometry import ChunkGeometry
+from .noise_schemes import NoiseSchemeWeights
+
+ACTION_PRIMERS = ("zero", "constant", "denoise")
+
+
+def _check_choice(name: str, value: str, choices) -> None:
+    if value not in choices:
+        raise ValueError(f"`{name}` must be one of {list(choices)}, got {value!r}.")
+
+
+@PreTrainedConfig.register_subclass("sdp")
+@dataclass
+class SDPConfig(PreTrainedConfig):
+    """Streaming Diffusion Policy (Høeg, Du, Egeland, arXiv 2406.04806).
+
+    SDP-specific:
+        n_chunks: chunks in the streaming buffer (h). Each executed chunk costs N / h denoiser calls.
+        action_primer: buffer initialisation after reset: "zero" (paper default), "constant" (the
+            current state repeated, needs state and action in one space), "denoise" (a full N-step
+            denoise on the first call).
+        noise_schemes: training mixture weights of the corruption schemes constant / linear /
+            independent / chunkwise (default 0.2 constant + 0.8 chunkwise, the paper's best).
+        use_ema, ema_power, ema_max_decay: EMA of the weights, used for inference in eval mode.
+    Everything else means what it means in LeRobot's DiffusionConfig.
+    """
+
+    # Geometry
+    n_obs_steps: int = 2
+    n_action_steps: int = 8
+    n_chunks: int = 2
+
+    normalization_mapping: dict[str, NormalizationMode] = field(
+        default_factory=lambda: {
+            "VISUAL": NormalizationMode.MEAN_STD,
+            "STATE": NormalizationMode.MIN_MAX,
+            "ACTION": NormalizationMode.MIN_MAX,
+        }
+    )
+
+    # Vision encoder (LeRobot DP's fields; offline-safe: no pretrained download, GroupNorm).
+    vision_backbone: str = "resnet18"
+    resize_shape: tuple[int, int] | None = None
+    crop_ratio: float = 1.0
+    crop_shape: tuple[int, int] | None = (84, 84)
+    crop_is_random: bool = True
+    pretrained_backbone_weights: str | None = None
+    use_group_norm: bool = True
+    spatial_softmax_num_keypoints: int = 32
+    use_separate_rgb_encoder_per_camera: bool = False
+
+    # U-Net
+    down_dims: tuple[int, ...] = (512, 1024, 2048)
+    kernel_size: int = 5
+    n_groups: int = 8
+    diffusion_step_embed_dim: int = 128
+    use_film_scale_modulation: bool = True
+    gradient_checkpointing: bool = False
+
+    # Noise scheduler
+    noise_scheduler_type: str = "DDPM"
+    num_train_timesteps: int = 100
+    beta_schedule: str = "squaredcos_cap_v2"
+    beta_start: float = 0.0001
+    beta_end: float = 0.02
+    prediction_type: str = "epsilon"
+    clip_sample: bool = True
+    clip_sample_range: float = 1.0
+    num_inference_steps: int | None = None
+
+    # SDP
+    action_primer: str = "zero"
+    noise_schemes: NoiseSchemeWeights = field(default_factory=NoiseSchemeWeights)
+    do_mask_loss_for_padding: bool = True
+
+    # EMA (the authors' settings)
+    use_ema: bool = True
+    ema_power: float = 0.75
+    ema_max_decay: float = 0.9999
+
+    compile_model: bool = False
+    compile_mode: str = "reduce-overhead"
+
+    # Training presets
+    optimizer_lr: float = 1e-4
+    optimizer_betas: tuple = (0.95, 0.999)
+    optimizer_eps: float = 1e-8
+    optimizer_weight_decay: float = 1e-6
+    scheduler_name: str = "cosine"
+    scheduler_warmup_steps: int = 500
+
+    push_to_hub: bool = False
+
+    def __post_init__(self):
+        super().__post_init__()
+        if not self.vision_backbone.startswith("resnet"):
+            raise ValueError(f"`vision_backbone` must be a ResNet variant, got {self.vision_backbone!r}.")
+        _check_choice("prediction_type", self.prediction_type, ("epsilon", "sample"))
+        _check_choice("noise_scheduler_type", self.noise_scheduler_type, ("DDPM", "DDIM"))
+        _check_choice("action_primer", self.action_primer, ACTION_PRIMERS)
+        if self.num_inference_steps is not None and self.num_inference_steps > self.num_train_timesteps:
+            raise ValueError(
+                f"num_inference_steps={self.num_inference_steps} > num_train_timesteps="
+                f"{self.num_train_timesteps}: lower `num_inference_steps`."
+            )
+        if not (0 < self.crop_ratio <= 1.0):
+            raise ValueError(f"`crop_ratio` must be in (0, 1], got {self.crop_ratio}.")
+        if self.resize_shape is not None:
+            ratio = self.crop_ratio
+            self.crop_shape = None if ratio == 1.0 else tuple(int(d * ratio) for d in self.resize_shape)
+        if self.crop_shape is not None and min(self.crop_shape) <= 0:
+            raise ValueError(f"`crop_shape` must have positive dimensions, got {self.crop_shape}.")
+        if not 0.0 <= self.ema_max_decay < 1.0 or self.ema_power <= 0:
+            raise ValueError("EMA needs 0 <= ema_max_decay < 1 and ema_power > 0.")
+        geometry = self.geometry  # validates the sizes
+        logging.info(
+            "SDP geometry: horizon=%d (%d past + %d chunks x %d + %d padding), %d denoiser calls per chunk.",
+            geometry.horizon, geometry.n_past, geometry.n_chunks, geometry.chunk_len, geometry.n_pad,
+            geometry.steps_per_call,
+        )
+
+    @property
+    def inference_steps(self) -> int:
+        """N, the denoising steps for a full trajectory (defaults to num_train_timesteps, as DP)."""
+        return self.num_inference_steps or self.num_train_timesteps
+
+    @property
+    def geometry(self) -> ChunkGeometry:
+        if not self.down_dims:
+            raise ValueError("`down_dims` must list at least one U-Net level.")
+        return ChunkGeometry(
+            n_obs_steps=self.n_obs_steps,
+            chunk_len=self.n_action_steps,
+            n_chunks=self.n_chunks,
+            num_inference_steps=self.inference_steps,
+            downsampling=2 ** (len(self.down_dims) - 1),
+        )
+
+    @property
+    def horizon(self) -> int:
+        return self.geometry.horizon
+
+    @property
+    def drop_n_last_frames(self) -> int:
+        # As DP: drop start frames whose executed chunk would run past the episode end.
+        return self.horizon - self.n_action_steps - self.n_obs_steps + 1
+
+    def get_optimizer_preset(self) -> AdamConfig:
+        return AdamConfig(
+            lr=self.optimizer_lr,
+            betas=self.optimizer_betas,
+            eps=self.optimizer_eps,
+            weight_decay=self.optimizer_weight_decay,
+        )
+
+    def get_scheduler_preset(self) -> DiffuserSchedulerConfig:
+        return DiffuserSchedulerConfig(name=self.scheduler_name, num_warmup_steps=self.scheduler_warmup_steps)
+
+    def validate_features(self) -> None:
+        if self.robot_state_feature is None:
+            raise ValueError(
+                "SDP needs `observation.state` among the input features (the robot's proprioception)."
+            )
+        if self.action_feature is None:
+            raise ValueError("SDP needs an `action` output feature.")
+        if not self.image_features and self.env_state_feature is None:
+            raise ValueError(
+                "SDP needs at least one camera (`observation.image*`) or `observation.environment_state` "
+                "as input."
+            )
+        shapes = {key: tuple(ft.shape) for key, ft in self.image_features.items()}
+        if len(set(shapes.values())) > 1:
+            raise ValueError(f"All camera images must share one shape, got {shapes}.")
+        if self.resize_shape is None and self.crop_shape is not None:
+            for key, shape in shapes.items():
+                if self.crop_shape[0] > shape[1] or self.crop_shape[1] > shape[2]:
+                    raise ValueError(
+                        f"`crop_shape` {tuple(self.crop_shape)} does not fit `{key}` of shape {shape}: "
+                        "set `--policy.crop_shape` to at most the image size (or null for no crop)."
+                    )
+        if self.action_primer == "constant" and self.robot_state_feature.shape != self.action_feature.shape:
+            raise ValueError(
+                f"action_primer='constant' repeats the current state as the first actions, but "
+                f"observation.state has shape {tuple(self.robot_state_feature.shape)} and action "
+                f"{tuple(self.action_feature.shape)}: they are not one space. Use `--policy.action_primer=zero`."
+            )
+
+    @property
+    def observation_delta_indices(self) -> list:
+        return list(range(1 - self.n_obs_steps, 1))
+
+    @property
+    def action_delta_indices(self) -> list:
+        return list(range(1 - self.n_obs_steps, 1 - self.n_obs_steps + self.horizon))
+
+    @property
+    def reward_delta_indices(self) -> None:
+        return None

@@ -1,0 +1,24 @@
+"""Exponential moving average of the weights, as the SDP and Diffusion Policy authors trained with.
+
+The decay follows diffusers' ``EMAModel.get_decay`` with warm-up (inv_gamma = 1):
+``decay = min(max_decay, 1 - (1 + step) ** -power)``, the schedule of the authors' configs
+(power 0.75, max 0.9999). The averaged copy is a registered sub-module of the policy, so it is saved
+in model.safetensors next to the raw weights and a resumed run continues the same average.
+"""
+
+import torch
+from torch import nn
+
+
+def ema_decay(step: int, power: float, max_decay: float) -> float:
+    return max(0.0, min(max_decay, 1.0 - (1.0 + step) ** -power))
+
+
+@torch.no_grad()
+def ema_update(averaged: nn.Module, model: nn.Module, decay: float) -> None:
+    """averaged <- decay * averaged + (1 - decay) * model for parameters; buffers are copied."""
+    avg = [p for p in averaged.parameters()]
+    new = [p.detach() for p in model.parameters()]
+    torch._foreach_lerp_(avg, new, 1.0 - decay)
+    for b_avg, b_new in zip(averaged.buffers(), model.buffers(), strict=True):
+        b_avg.copy_(b_new)

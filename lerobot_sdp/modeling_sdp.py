@@ -1,0 +1,255 @@
+"""Streaming Diffusion Policy (paper: Høeg, Du, Egeland, "Fast Policy Synthesis with Variable Noise
+Diffusion Models", arXiv 2406.04806; the paper's Algorithm 1 is `SDPPolicy.predict_action_chunk`).
+
+`SDPModel` reuses LeRobot Diffusion Policy's observation encoders and U-Net (`DiffusionModel`) and
+replaces what per-slot noise levels change: the U-Net's step encoder (`unet.py`), the loss
+(`noise_schemes.py`, paper Eq. 5) and sampling (`schedule.py`, paper Eq. 2). `SDPPolicy` adds the
+streaming buffer (`buffer.py`), the action primers and EMA.
+"""
+
+import copy
+import logging
+from collections import deque
+
+import torch
+import torch.nn.functional as F  # noqa: N812
+from lerobot.configs import NormalizationMode
+from lerobot.policies.diffusion.modeling_diffusion import DiffusionModel
+from lerobot.policies.pretrained import PreTrainedPolicy
+from lerobot.policies.utils import populate_queues
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
+from safetensors import safe_open
+from torch import Tensor
+
+from .buffer import Denoiser, StreamingBuffer, run_reverse_steps
+from .configuration_sdp import SDPConfig
+from .ema import ema_decay, ema_update
+from .noise_schemes import sample_levels
+from .schedule import PerSlotSchedule
+from .unet import make_variable_noise
+
+
+class SDPModel(DiffusionModel):
+    """DP's observation encoders and U-Net, trained and sampled with one noise level per slot."""
+
+    def __init__(self, config: SDPConfig):
+        super().__init__(config)
+        self.geometry = config.geometry
+        make_variable_noise(self.unet, config.diffusion_step_embed_dim, self.geometry.horizon)
+        self.schedule = PerSlotSchedule(self.noise_scheduler, self.num_inference_steps)
+
+    def denoiser(self, global_cond: Tensor) -> Denoiser:
+        return lambda sample, timesteps: self.unet(sample, timesteps, global_cond=global_cond)
+
+    def conditional_sample(
+        self,
+        batch_size: int,
+        global_cond: Tensor | None = None,
+        generator: torch.Generator | None = None,
+        noise: Tensor | None = None,
+    ) -> Tensor:
+        """Full N-step denoise with every slot at one level: DP-style sampling, SDP's "denoise" primer."""
+        param = next(self.unet.parameters())
+        shape = (batch_size, self.geometry.horizon, self.config.action_feature.shape[0])
+        sample = noise if noise is not None else torch.randn(shape, generator=generator, device=param.device)
+        n = self.num_inference_steps
+        k_start = torch.full((self.geometry.horizon,), n, device=sample.device)
+        return run_reverse_steps(self.schedule, self.denoiser(global_cond), sample, k_start, n)
+
+    def compute_loss(self, batch: dict[str, Tensor]) -> Tensor:
+        """Paper Eq. 5: MSE between the noise (or clean actions) and the prediction, levels per slot."""
+        trajectory = batch[ACTION]
+        if trajectory.shape[1] != self.geometry.horizon:
+            raise ValueError(
+                f"The batch holds {trajectory.shape[1]} action frames but SDP's horizon is "
+                f"{self.geometry.horizon}: build the dataset with this config's action_delta_indices."
+            )
+        global_cond = self._prepare_global_conditioning(batch)
+        levels, _ = sample_levels(self.config.noise_schemes, trajectory.shape[0], self.geometry, self.schedule)
+        levels = levels.to(trajectory.device)
+        eps = torch.randn_like(trajectory)
+        pred = self.unet(self.schedule.add_noise(trajectory, eps, levels), levels, global_cond=global_cond)
+        target = eps if self.config.prediction_type == "epsilon" else trajectory
+        loss = F.mse_loss(pred, target, reduction="none")
+        if self.config.do_mask_loss_for_padding and "action_is_pad" in batch:
+            mask = (~batch["action_is_pad"]).unsqueeze(-1)
+            return (loss * mask).sum() / (mask.sum() * loss.shape[-1]).clamp_min(1)
+        return loss.mean()
+
+
+def state_to_action_map(config: SDPConfig, dataset_stats: dict | None) -> Tensor:
+    """(2, A) scale and offset taking a normalised state to the normalised action of the same raw
+    value (the "constant" primer). NaN when the stats are unknown or the spaces differ."""
+    action_dim = config.action_feature.shape[0]
+    out = torch.full((2, action_dim), float("nan"))
+    state_ft = config.robot_state_feature
+    if not dataset_stats or OBS_STATE not in dataset_stats or ACTION not in dataset_stats:
+        return out
+    if tuple(state_ft.shape) != (action_dim,):
+        return out
+
+    def to_raw(key: str, mode: NormalizationMode) -> tuple[Tensor, Tensor]:
+        st = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in dataset_stats[key].items()}
+        if mode is NormalizationMode.MIN_MAX:
+            return (st["max"] - st["min"]) / 2, (st["max"] + st["min"]) / 2
+        if mode is NormalizationMode.MEAN_STD:
+            return st["std"], st["mean"]
+        return torch.ones(action_dim), torch.zeros(action_dim)
+
+    a_s, b_s = to_raw(OBS_STATE, config.normalization_mapping["STATE"])
+    a_a, b_a = to_raw(ACTION, config.normalization_mapping["ACTION"])
+    return torch.stack([a_s / a_a, (b_s - b_a) / a_a])
+
+
+class SDPPolicy(PreTrainedPolicy):
+    """Streaming Diffusion Policy: each executed chunk costs N / h denoiser calls instead of N."""
+
+    config_class = SDPConfig
+    name = "sdp"
+
+    def __init__(self, config: SDPConfig, dataset_stats: dict | None = None, **kwargs):
+        super().__init__(config)
+        config.validate_features()
+        self.config = config
+        self.model = SDPModel(config)
+        self.ema_model = copy.deepcopy(self.model).requires_grad_(False) if config.use_ema else None
+        self.register_buffer("ema_step", torch.zeros((), dtype=torch.long))
+        self.register_buffer("state_to_action", state_to_action_map(config, dataset_stats))
+        self.geometry = config.geometry
+        # Plain attribute, not a registered buffer: streaming state never enters a checkpoint.
+        self._buffer = StreamingBuffer(self.geometry, self.model.schedule)
+        self._queues: dict[str, deque] = {}
+        self.reset()
+
+    def get_optim_params(self) -> dict:
+        return self.model.parameters()
+
+    def update(self) -> None:
+        """Called by lerobot-train after every optimizer step: advance the EMA."""
+        if self.ema_model is None:
+            return
+        decay = ema_decay(int(self.ema_step), self.config.ema_power, self.config.ema_max_decay)
+        ema_update(self.ema_model, self.model, decay)
+        self.ema_step += 1
+
+    def reset(self) -> None:
+        """Drop the observation history, the queued actions and the streaming buffer."""
+        cfg = self.config
+        self._queues = {OBS_STATE: deque(maxlen=cfg.n_obs_steps), ACTION: deque(maxlen=cfg.n_action_steps)}
+        if cfg.image_features:
+            self._queues[OBS_IMAGES] = deque(maxlen=cfg.n_obs_steps)
+        if cfg.env_state_feature:
+            self._queues[OBS_ENV_STATE] = deque(maxlen=cfg.n_obs_steps)
+        self._buffer.clear()
+
+    def _sampling_model(self) -> SDPModel:
+        return self.ema_model if self.ema_model is not None and not self.training else self.model
+
+    def _stack_cameras(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        if not self.config.image_features:
+            return batch
+        batch = dict(batch)
+        batch[OBS_IMAGES] = torch.stack([batch[key] for key in self.config.image_features], dim=-4)
+        return batch
+
+    def _check_observation(self, batch: dict[str, Tensor]) -> None:
+        for key, ft in self.config.input_features.items():
+            if key not in batch:
+                raise ValueError(
+                    f"Observation is missing `{key}`; this policy was trained on "
+                    f"{sorted(self.config.input_features)}. Check the environment's observation type "
+                    "(e.g. `--env.obs_type`) or the processor's rename map."
+                )
+            value = batch[key]
+            if tuple(value.shape[1:]) != tuple(ft.shape):
+                raise ValueError(
+                    f"Observation `{key}` has shape {tuple(value.shape)}, expected (batch, "
+                    f"{', '.join(map(str, ft.shape))}). Check the environment matches the training data."
+                )
+            if not torch.isfinite(value).all():
+                raise ValueError(f"Observation `{key}` contains NaN or inf; refusing to act on it.")
+
+    @torch.no_grad()
+    def select_action(self, batch: dict[str, Tensor], noise: Tensor | None = None) -> Tensor:
+        """Pop the next action; when the queue is empty run one streaming step (N/h denoiser calls)."""
+        batch = {k: v for k, v in batch.items() if k != ACTION}
+        self._check_observation(batch)
+        queued = self._queues[OBS_STATE]
+        if queued and queued[-1].shape[0] != batch[OBS_STATE].shape[0]:
+            logging.warning("SDP: the batch size changed without reset(); starting a new stream.")
+            self.reset()
+        self._queues = populate_queues(self._queues, self._stack_cameras(batch))
+        if not self._queues[ACTION]:
+            self._queues[ACTION].extend(self.predict_action_chunk(batch).transpose(0, 1))
+        return self._queues[ACTION].popleft()
+
+    @torch.no_grad()
+    def predict_action_chunk(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
+        """Algorithm 1, one iteration: s = N/h denoiser calls on the buffer, return the clean chunk
+        (B, n_action_steps, A) and roll the buffer. The noisy tail stays internal.
+
+        Online (after select_action filled the queues) the stacked history is used; offline, `batch`
+        must already hold (B, n_obs_steps, ...) observations, as a dataloader gives them."""
+        if self._queues[OBS_STATE]:
+            batch = {k: torch.stack(list(self._queues[k]), dim=1) for k in self._queues if k != ACTION}
+        else:
+            batch = self._stack_cameras(batch)
+        batch_size = batch[OBS_STATE].shape[0]
+        if self._buffer.batch_size not in (None, batch_size):
+            self._buffer.clear()
+        model = self._sampling_model()
+        global_cond = model._prepare_global_conditioning(batch)
+        if self._buffer.sample is None:
+            self._buffer.prime(self._primer(model, batch, global_cond))
+        return self._buffer.advance(model.denoiser(global_cond))
+
+    def _primer(self, model: SDPModel, batch: dict[str, Tensor], global_cond: Tensor) -> Tensor:
+        """Clean (normalised) sequence the buffer starts from (paper Sec. "Initializing the buffer")."""
+        batch_size = batch[OBS_STATE].shape[0]
+        shape = (batch_size, self.geometry.horizon, self.config.action_feature.shape[0])
+        primer = self.config.action_primer
+        if primer == "denoise":
+            return model.conditional_sample(batch_size, global_cond=global_cond)
+        if primer == "constant":
+            if torch.isnan(self.state_to_action).any():
+                raise ValueError(
+                    "action_primer='constant' needs the dataset statistics of observation.state and "
+                    "action, and this policy was built without them (or its state and action spaces "
+                    "differ). Use `--policy.action_primer=zero`."
+                )
+            scale, offset = self.state_to_action
+            current = batch[OBS_STATE][:, -1] * scale + offset
+            return current.unsqueeze(1).expand(shape).contiguous()
+        return torch.zeros(shape, device=global_cond.device, dtype=global_cond.dtype)
+
+    def forward(self, batch: dict[str, Tensor]) -> tuple[Tensor, None]:
+        """Training loss on a dataset batch of (B, n_obs_steps, ...) observations and (B, horizon, A)
+        actions."""
+        if self.config.image_features:
+            batch = dict(batch)
+            for key in self.config.image_features:
+                if self.config.n_obs_steps == 1 and batch[key].ndim == 4:
+                    batch[key] = batch[key].unsqueeze(1)
+        return self.model.compute_loss(self._stack_cameras(batch)), None
+
+    @classmethod
+    def _load_as_safetensor(cls, model, model_file: str, map_location: str, strict: bool):
+        """Refuse a checkpoint whose tensors do not fit the config (LeRobot loads non-strictly)."""
+        expected = {k: tuple(v.shape) for k, v in model.state_dict().items()}
+        with safe_open(model_file, "pt") as f:
+            found = {k: tuple(f.get_slice(k).get_shape()) for k in f.keys()}
+        problems = [f"missing {k}" for k in expected.keys() - found.keys()]
+        problems += [f"unexpected {k}" for k in found.keys() - expected.keys()]
+        problems += [
+            f"{k}: checkpoint {found[k]} vs config {expected[k]}"
+            for k in expected.keys() & found.keys()
+            if found[k] != expected[k]
+        ]
+        if problems:
+            raise ValueError(
+                f"The weights in {model_file} do not match their SDP config ({len(problems)} differences, "
+                f"e.g. {'; '.join(sorted(problems)[:4])}). Shape-changing fields (n_obs_steps, "
+                "n_action_steps, n_chunks, down_dims, diffusion_step_embed_dim, use_ema, ...) must stay as "
+                "trained: restore the checkpoint's config.json or drop the conflicting --policy.* overrides."
+            )
+        return super()._load_as_safetensor(model, model_file, map_location, strict=True)

@@ -1,0 +1,86 @@
+"""Training noise-corruption schemes: which level every slot of a training sample is noised to.
+
+Paper Sec. "Training SDP Policy" (Eq. 5, ``L = MSE(eps^k, eps_theta(A + eps^k; O, k))`` with one
+level per slot) and Fig. "Trajectory Noise Corruptions"; sdp-algorithm.md, section 6:
+
+- constant: one t ~ U{0..T-1} for the whole sequence (plain Diffusion Policy);
+- linear: t rises linearly along the slots from 0 to T-1 (deterministic, as in the authors' code);
+- independent: i.i.d. t ~ U{0..T-1} per slot (Diffusion Forcing style);
+- chunkwise: chunk i in the band of steps remaining [i*s+1, (i+1)*s], one offset shared by all
+  chunks of the sample, so training sees exactly the staircases that streaming inference visits.
+
+A mixture draws one scheme *per sample* with the given weights (the authors drew one per batch;
+per sample gives every batch the mixture's proportions). All levels are training timesteps.
+"""
+
+from dataclasses import dataclass, fields
+
+import torch
+from torch import Tensor
+
+from .geometry import ChunkGeometry
+from .schedule import PerSlotSchedule
+
+
+@dataclass
+class NoiseSchemeWeights:
+    """Mixture weights of the four schemes (`--policy.noise_schemes.chunkwise=0.8` ...).
+    Defaults: the paper's best mixture, 80% chunk-wise + 20% constant."""
+
+    constant: float = 0.2
+    linear: float = 0.0
+    independent: float = 0.0
+    chunkwise: float = 0.8
+
+    def __post_init__(self):
+        weights = self.as_dict()
+        if any(w < 0 for w in weights.values()) or sum(weights.values()) <= 0:
+            raise ValueError(
+                f"noise_schemes weights must be >= 0 with a positive sum, got {weights}. "
+                "Set e.g. `--policy.noise_schemes.chunkwise=0.8 --policy.noise_schemes.constant=0.2`."
+            )
+
+    def as_dict(self) -> dict[str, float]:
+        return {f.name: float(getattr(self, f.name)) for f in fields(self)}
+
+
+def constant_levels(batch_size: int, geometry: ChunkGeometry, schedule: PerSlotSchedule) -> Tensor:
+    t = torch.randint(schedule.num_train_timesteps, (batch_size, 1))
+    return t.expand(batch_size, geometry.horizon)
+
+
+def linear_levels(batch_size: int, geometry: ChunkGeometry, schedule: PerSlotSchedule) -> Tensor:
+    ramp = torch.linspace(0, schedule.num_train_timesteps - 1, geometry.horizon).round().long()
+    return ramp.expand(batch_size, geometry.horizon)
+
+
+def independent_levels(batch_size: int, geometry: ChunkGeometry, schedule: PerSlotSchedule) -> Tensor:
+    return torch.randint(schedule.num_train_timesteps, (batch_size, geometry.horizon))
+
+
+def chunkwise_levels(batch_size: int, geometry: ChunkGeometry, schedule: PerSlotSchedule) -> Tensor:
+    s = geometry.steps_per_call
+    offset = torch.randint(1, s + 1, (batch_size, 1))  # shared by all chunks of a sample
+    k = geometry.slot_chunk.unsqueeze(0) * s + offset
+    return schedule.train_timesteps(k.to(schedule.timestep_table.device)).cpu()
+
+
+SCHEMES = {
+    "constant": constant_levels,
+    "linear": linear_levels,
+    "independent": independent_levels,
+    "chunkwise": chunkwise_levels,
+}
+
+
+def sample_levels(
+    weights: NoiseSchemeWeights, batch_size: int, geometry: ChunkGeometry, schedule: PerSlotSchedule
+) -> tuple[Tensor, Tensor]:
+    """Training timesteps (B, horizon) from the weighted mixture, and the scheme index per sample."""
+    w = weights.as_dict()
+    active = [name for name in SCHEMES if w[name] > 0]
+    probs = torch.tensor([w[name] for name in active])
+    choice = torch.multinomial(probs, batch_size, replacement=True)
+    levels = torch.stack([SCHEMES[name](batch_size, geometry, schedule) for name in active])
+    scheme_index = torch.tensor([list(SCHEMES).index(name) for name in active])[choice]
+    return levels[choice, torch.arange(batch_size)], scheme_index
