@@ -1,0 +1,25 @@
+"""Shared test fixtures. The rootdir conftest keeps tests importable without a `tests` package
+(site-packages already has one, from draccus)."""
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def real_pusht_zarr() -> Path | None:
+    """The real Push-T demonstrations: $SDP_PUSHT_ZARR, then ../shared/data/pusht/..."""
+    env = os.environ.get("SDP_PUSHT_ZARR")
+    candidates = [Path(env)] if env else []
+    candidates.append(REPO.parent / "shared" / "data" / "pusht" / "pusht_cchi_v7_replay.zarr")
+    return next((p for p in candidates if p.exists()), None)
+
+
+@pytest.fixture
+def pusht_zarr() -> Path:
+    path = real_pusht_zarr()
+    if path is None:
+        pytest.skip("real Push-T zarr not found: set SDP_PUSHT_ZARR or put it at ../shared/data/pusht/")
+    return path
