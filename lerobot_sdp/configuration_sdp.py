@@ -113,6 +113,8 @@ class SDPConfig(PreTrainedConfig):
         _check_choice("prediction_type", self.prediction_type, ("epsilon", "sample"))
         _check_choice("noise_scheduler_type", self.noise_scheduler_type, ("DDPM", "DDIM"))
         _check_choice("action_primer", self.action_primer, ACTION_PRIMERS)
+        if isinstance(self.noise_schemes, dict):  # convenience for Python callers
+            self.noise_schemes = NoiseSchemeWeights(**self.noise_schemes)
         if self.num_inference_steps is not None and self.num_inference_steps > self.num_train_timesteps:
             raise ValueError(
                 f"num_inference_steps={self.num_inference_steps} > num_train_timesteps="

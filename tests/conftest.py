@@ -23,3 +23,4 @@ def pusht_zarr() -> Path:
     if path is None:
         pytest.skip("real Push-T zarr not found: set SDP_PUSHT_ZARR or put it at ../shared/data/pusht/")
     return path
+

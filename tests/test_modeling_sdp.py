@@ -1,0 +1,170 @@
+"""SDPPolicy: training loss, EMA, save/load round trip and bad input."""
+
+import json
+
+import pytest
+import torch
+from sdp_test_utils import PUSHT_STATS, history, observation, tiny_config
+
+from lerobot_sdp import SDPPolicy
+
+
+def training_batch(cfg, batch_size=4):
+    batch = history(cfg, batch_size)
+    batch["action"] = torch.rand(batch_size, cfg.horizon, 2) * 2 - 1
+    batch["action_is_pad"] = torch.zeros(batch_size, cfg.horizon, dtype=torch.bool)
+    return batch
+
+
+@pytest.mark.parametrize("image", [False, True])
+def test_training_step_reduces_loss_on_a_fixed_batch(image):
+    torch.manual_seed(0)
+    cfg = tiny_config(image=image, prediction_type="sample")
+    policy = SDPPolicy(cfg)
+    batch = training_batch(cfg)
+    optim = torch.optim.Adam(policy.get_optim_params(), lr=3e-3)
+    losses = []
+    for _ in range(40):
+        loss, _ = policy.forward(batch)
+        optim.zero_grad()
+        loss.backward()
+        optim.step()
+        policy.update()
+        losses.append(loss.item())
+    assert sum(losses[-10:]) / 10 < 0.5 * sum(losses[:5]) / 5
+
+
+def test_padded_actions_do_not_contribute_to_the_loss():
+    cfg = tiny_config(prediction_type="sample")
+    policy = SDPPolicy(cfg)
+    policy.model.unet.forward = lambda x, t, global_cond=None: torch.zeros_like(x)  # loss = mean(a^2)
+    batch = training_batch(cfg)
+    batch["action_is_pad"][:, -6:] = True
+    batch["action"][:, -6:] = 100.0  # garbage where padded
+    loss, _ = policy.forward(batch)
+    torch.testing.assert_close(loss, batch["action"][:, :-6].pow(2).mean())
+
+
+def test_ema_follows_the_authors_schedule_and_serves_eval():
+    cfg = tiny_config(ema_power=0.75, ema_max_decay=0.9999)
+    policy = SDPPolicy(cfg)
+    p_model = next(policy.model.unet.parameters())
+    p_ema = next(policy.ema_model.unet.parameters())
+    before = p_ema.detach().clone()
+    with torch.no_grad():
+        p_model.add_(1.0)
+    policy.update()  # step 0: decay 0 -> EMA copies the weights
+    torch.testing.assert_close(p_ema, p_model)
+    with torch.no_grad():
+        p_model.add_(1.0)
+    policy.update()  # step 1: decay 1 - 2**-0.75
+    decay = 1 - 2**-0.75
+    torch.testing.assert_close(p_ema, decay * (before + 1) + (1 - decay) * p_model)
+    assert int(policy.ema_step) == 2
+    assert policy.eval()._sampling_model() is policy.ema_model
+    assert policy.train()._sampling_model() is policy.model
+    assert not any(p is q for p in policy.get_optim_params() for q in policy.ema_model.parameters())
+
+
+def test_save_load_round_trip_gives_identical_actions(tmp_path):
+    cfg = tiny_config(action_primer="constant")
+    policy = SDPPolicy(cfg, dataset_stats=PUSHT_STATS)
+    policy.update()
+    policy.save_pretrained(tmp_path)
+    loaded = SDPPolicy.from_pretrained(tmp_path)
+    assert json.loads((tmp_path / "config.json").read_text())["type"] == "sdp"
+    torch.testing.assert_close(loaded.state_to_action, policy.state_to_action)
+    policy.eval()
+    actions = []
+    for p in (policy, loaded):
+        torch.manual_seed(123)
+        p.reset()
+        actions.append(torch.stack([p.select_action(observation(cfg, seed=i)) for i in range(12)]))
+    torch.testing.assert_close(actions[0], actions[1], atol=0, rtol=0)
+
+
+def test_streaming_state_stays_out_of_the_checkpoint():
+    cfg = tiny_config()
+    policy = SDPPolicy(cfg).eval()
+    policy.select_action(observation(cfg))
+    assert policy._buffer.sample is not None
+    assert not any("buffer" in k or "queue" in k for k in policy.state_dict())
+
+
+def test_predict_action_chunk_returns_clean_chunk_only():
+    cfg = tiny_config()
+    chunk = SDPPolicy(cfg).eval().predict_action_chunk(history(cfg, 3))
+    assert chunk.shape == (3, cfg.n_action_steps, 2)
+
+
+# --- bad input -------------------------------------------------------------------------------
+
+
+def test_missing_observation_feature_is_named():
+    cfg = tiny_config()
+    obs = observation(cfg)
+    del obs["observation.environment_state"]
+    with pytest.raises(ValueError, match="missing `observation.environment_state`"):
+        SDPPolicy(cfg).eval().select_action(obs)
+
+
+def test_misshaped_observation_is_named():
+    cfg = tiny_config()
+    obs = observation(cfg)
+    obs["observation.state"] = torch.rand(2, 3)
+    with pytest.raises(ValueError, match=r"`observation.state` has shape \(2, 3\), expected \(batch, 2\)"):
+        SDPPolicy(cfg).eval().select_action(obs)
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_non_finite_observation_is_refused(bad):
+    cfg = tiny_config()
+    obs = observation(cfg)
+    obs["observation.environment_state"][0, 3] = bad
+    with pytest.raises(ValueError, match="NaN or inf"):
+        SDPPolicy(cfg).eval().select_action(obs)
+
+
+def test_constant_primer_needs_state_and_action_in_one_space():
+    from lerobot.configs.types import FeatureType, PolicyFeature
+
+    cfg = tiny_config(action_primer="constant")
+    cfg.input_features["observation.state"] = PolicyFeature(FeatureType.STATE, (7,))
+    with pytest.raises(ValueError, match="not one space.*action_primer=zero"):
+        SDPPolicy(cfg)
+
+
+def test_constant_primer_without_stats_is_a_clear_error():
+    cfg = tiny_config(action_primer="constant")
+    with pytest.raises(ValueError, match="dataset statistics"):
+        SDPPolicy(cfg).eval().select_action(observation(cfg))
+
+
+def test_constant_primer_starts_from_the_current_state():
+    """Normalised state -> raw -> normalised action: the primer is the state in action space."""
+    cfg = tiny_config(action_primer="constant")
+    policy = SDPPolicy(cfg, dataset_stats=PUSHT_STATS)
+    raw = torch.tensor([[100.0, 300.0]])
+    s_min, s_max = torch.tensor(PUSHT_STATS["observation.state"]["min"]), torch.tensor(PUSHT_STATS["observation.state"]["max"])
+    a_min, a_max = torch.tensor(PUSHT_STATS["action"]["min"]), torch.tensor(PUSHT_STATS["action"]["max"])
+    norm_state = (raw - s_min) / (s_max - s_min) * 2 - 1
+    batch = {"observation.state": norm_state.unsqueeze(1)}
+    primer = policy._primer(policy.model, batch, torch.zeros(1, 1))
+    torch.testing.assert_close(primer[0, 0], ((raw - a_min) / (a_max - a_min) * 2 - 1)[0])
+
+
+def test_checkpoint_that_does_not_match_its_config_is_refused(tmp_path):
+    SDPPolicy(tiny_config()).save_pretrained(tmp_path)
+    config = json.loads((tmp_path / "config.json").read_text())
+    config["n_action_steps"] = 8  # a longer horizon: the step encoder no longer fits
+    (tmp_path / "config.json").write_text(json.dumps(config))
+    with pytest.raises(ValueError, match="do not match their SDP config"):
+        SDPPolicy.from_pretrained(tmp_path)
+
+
+def test_wrong_action_horizon_in_batch_is_named():
+    cfg = tiny_config()
+    batch = training_batch(cfg)
+    batch["action"] = batch["action"][:, :5]
+    with pytest.raises(ValueError, match="action frames but SDP's horizon"):
+        SDPPolicy(cfg).forward(batch)
