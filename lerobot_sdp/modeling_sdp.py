@@ -29,6 +29,14 @@ from .schedule import PerSlotSchedule
 from .unet import make_variable_noise
 
 
+MODEL_CARD_INTRO = (
+    "[Streaming Diffusion Policy (SDP)](https://arxiv.org/abs/2406.04806) keeps a buffer of partially "
+    "denoised future actions at increasing noise levels, so every executed action chunk costs N/h denoiser "
+    "calls instead of Diffusion Policy's N. Trained with the `lerobot_policy_sdp` plugin "
+    "(`--policy.type=sdp`); install the plugin to load this model with LeRobot.\n"
+)
+
+
 class SDPModel(DiffusionModel):
     """DP's observation encoders and U-Net, trained and sampled with one noise level per slot."""
 
@@ -231,6 +239,13 @@ class SDPPolicy(PreTrainedPolicy):
                 if self.config.n_obs_steps == 1 and batch[key].ndim == 4:
                     batch[key] = batch[key].unsqueeze(1)
         return self.model.compute_loss(self._stack_cameras(batch)), None
+
+    def generate_model_card(self, *args, **kwargs):
+        """LeRobot's card, introduced as SDP (LeRobot's template only knows its built-in policies)."""
+        card = super().generate_model_card(*args, **kwargs)
+        title = f"# Model Card for {self.name}\n"
+        card.content = card.content.replace(title, title + "\n" + MODEL_CARD_INTRO, 1)
+        return card
 
     @classmethod
     def _load_as_safetensor(cls, model, model_file: str, map_location: str, strict: bool):

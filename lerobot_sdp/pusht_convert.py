@@ -22,15 +22,22 @@ after the write by reloading the dataset.
 
 import argparse
 import shutil
-from collections.abc import Sequence
+import warnings
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+import datasets
 import numpy as np
 import zarr
-from gym_pusht.envs.pusht import PushTEnv
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from tqdm import tqdm
+
+with warnings.catch_warnings():
+    # pygame, imported by gym-pusht, warns that pkg_resources is deprecated: noise for our users.
+    warnings.filterwarnings("ignore", "pkg_resources is deprecated", UserWarning)
+    from gym_pusht.envs.pusht import PushTEnv
 
 VARIANTS = ("image", "keypoints")
 DEFAULT_VARIANT = "image"
@@ -304,6 +311,18 @@ def convert_pusht(
     return out_dir
 
 
+@contextmanager
+def _without_datasets_progress_bars() -> Iterator[None]:
+    """LeRobot's save_episode runs a `datasets` map per episode; its bars would interleave with ours."""
+    were_disabled = datasets.are_progress_bars_disabled()
+    datasets.disable_progress_bars()
+    try:
+        yield
+    finally:
+        if not were_disabled:
+            datasets.enable_progress_bars()
+
+
 def _write_dataset(
     data: PushTZarr, out_dir: Path, repo_id: str, variant: str, episodes: list[int], with_images: bool
 ) -> None:
@@ -320,7 +339,8 @@ def _write_dataset(
     )
     geometry = BlockGeometry()
     total = sum(data.frames(ep).stop - data.frames(ep).start for ep in episodes)
-    with tqdm(total=total, unit="frame", desc=f"Push-T {variant} -> {out_dir.name}") as progress:
+    progress = tqdm(total=total, unit="frame", desc=f"Push-T {variant} -> {out_dir.name}")
+    with progress, _without_datasets_progress_bars():
         for episode in episodes:
             columns = episode_columns(data, episode, geometry, variant, with_images)
             for t in range(len(columns["action"])):

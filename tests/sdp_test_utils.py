@@ -43,3 +43,41 @@ def history(config, batch_size: int = 2):
     """A dataloader-style observation batch: (B, n_obs_steps, ...) per input feature."""
     obs = observation(config, batch_size)
     return {k: v.unsqueeze(1).expand(-1, config.n_obs_steps, *v.shape[1:]) for k, v in obs.items()}
+
+
+def make_tiny_pusht_dataset(root, image: bool = False, n_episodes: int = 2, length: int = 30, seed: int = 0):
+    """A small random LeRobotDataset with Push-T's schema (state + keypoints, or state + 96 px image)."""
+    import numpy as np
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    features = {
+        "observation.state": {"dtype": "float32", "shape": (2,), "names": ["x", "y"]},
+        "action": {"dtype": "float32", "shape": (2,), "names": ["x", "y"]},
+        "next.reward": {"dtype": "float32", "shape": (1,), "names": None},
+        "next.done": {"dtype": "bool", "shape": (1,), "names": None},
+        "next.success": {"dtype": "bool", "shape": (1,), "names": None},
+    }
+    if image:
+        features["observation.image"] = {"dtype": "image", "shape": (96, 96, 3), "names": ["height", "width", "channel"]}
+    else:
+        features["observation.environment_state"] = {"dtype": "float32", "shape": (16,), "names": None}
+    ds = LeRobotDataset.create("local/tiny_pusht", fps=10, features=features, root=root, use_videos=False)
+    rng = np.random.default_rng(seed)
+    for _ in range(n_episodes):
+        for i in range(length):
+            frame = {
+                "observation.state": rng.uniform(0, 512, 2).astype(np.float32),
+                "action": rng.uniform(0, 512, 2).astype(np.float32),
+                "next.reward": np.array([rng.uniform()], dtype=np.float32),
+                "next.done": np.array([i == length - 1]),
+                "next.success": np.array([False]),
+                "task": "Push the T-shaped block onto the T-shaped target.",
+            }
+            if image:
+                frame["observation.image"] = rng.integers(0, 255, (96, 96, 3), dtype=np.uint8)
+            else:
+                frame["observation.environment_state"] = rng.uniform(0, 512, 16).astype(np.float32)
+            ds.add_frame(frame)
+        ds.save_episode()
+    ds.finalize()
+    return ds
