@@ -491,8 +491,7 @@ def plot_h_sweep(results: list[dict], path: Path) -> None:
         ax_ratio.set_xticks(h, [str(int(v)) for v in h])
         title = f"{device}, batch {batch}"
         ax_time.set(yscale="log", xlabel="horizon (slots)", ylabel="time per chunk, p50 [ms]", title=title)
-        ax_ratio.set(xscale="log", yscale="log", xlabel="chunks in the buffer h", ylabel="SDP / DP",
-                     title=title)
+        ax_ratio.set(xscale="log", yscale="log", xlabel="chunks in the buffer h", ylabel="SDP / DP", title=title)
         for ax in (ax_time, ax_ratio):
             ax.grid(True, which="both", alpha=0.3)
             ax.legend(fontsize="small")
@@ -505,7 +504,7 @@ def markdown_table(results: list[dict]) -> str:
         "| DP chunk p50 / p95 ms | SDP / DP per action p50 ms | SDP primer ms | SDP/DP | target 1.1/h "
         "| SDP bookkeeping p50 (% of a U-Net call) |"
     )
-    lines = [header, "|" + "---|" * header.count(" | ")]
+    lines = [header, "|" + "---|" * (header.count("|") - 1)]
     for r in measured_results(results):
         sdp, dp, ratio = r["sdp"], r["dp"], r["ratio"]
         lines.append(

@@ -1,0 +1,15 @@
+# The two fresh-machine commands of the README.
+#   make main   set up, then run the Push-T main job (data -> train SDP -> lerobot-eval -> summary)
+#   make test   set up, then run the test suite (what CI runs)
+.PHONY: setup main test
+
+setup:
+	bash .ci/setup
+
+main: setup
+	.venv/bin/lerobot-sdp-pusht $(ARGS)
+
+# pytest exits 5 when it collected no test: that must fail CI, not pass as green.
+test: setup
+	HF_HUB_OFFLINE=1 WANDB_MODE=disabled MUJOCO_GL=$${MUJOCO_GL:-egl} .venv/bin/python -m pytest -q $(PYTEST_ARGS); \
+	rc=$$?; if [ $$rc -eq 5 ]; then echo "error: pytest collected no tests" >&2; exit 1; fi; exit $$rc

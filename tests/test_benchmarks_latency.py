@@ -1,0 +1,81 @@
+"""The latency benchmark end to end on a tiny CPU run, through the `lerobot-sdp-bench` entry point:
+the JSON's fields, counted denoiser calls and sane (not timed) values."""
+
+import json
+import math
+
+import pytest
+
+from lerobot_sdp.benchmarks import cli
+
+SAMPLERS = {"DDIM4": 4, "DDPM6": 6}
+N_CHUNKS = [1, 2, 4]
+BATCH_SIZES = [1, 3]
+
+
+def run_bench(tmp_path, *extra: str) -> dict:
+    cli.main(["latency", "--quick", "--device", "cpu", "--steps", "2", "--output_dir", str(tmp_path), *extra])
+    return json.loads((tmp_path / "latency.json").read_text())
+
+
+def check_timings(stats: dict) -> None:
+    for key in ("chunk_latency_ms", "per_action_ms", "denoiser_call_ms"):
+        assert stats[key]["p50"] > 0, key
+        assert stats[key]["p95"] >= stats[key]["p50"], key
+        assert stats[key]["n"] == 2, key
+    assert stats["image_encoder_ms"]["p50"] == 0  # state observations: no camera encoder
+    assert math.isfinite(stats["bookkeeping_fraction_of_denoiser_call"]["p50"])
+    assert stats["primer"]["latency_ms"] > 0
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory) -> dict:
+    out = tmp_path_factory.mktemp("latency")
+    batch_sizes = [str(b) for b in BATCH_SIZES]
+    n_chunks = [str(h) for h in N_CHUNKS]
+    result = run_bench(out, "--samplers", *SAMPLERS, "--n_chunks", *n_chunks, "--batch_sizes", *batch_sizes)
+    assert (out / "latency_h_sweep.png").stat().st_size > 0
+    return result
+
+
+def test_environment_and_settings(report):
+    env = report["environment"]
+    for key in ("python", "torch", "lerobot", "diffusers", "cpu_model", "cpu_count", "torch_num_threads"):
+        assert env[key], key
+    settings = report["settings"]
+    assert settings["samplers"] == list(SAMPLERS)
+    assert settings["n_chunks"] == N_CHUNKS
+    assert "random" in settings["weights"]
+
+
+def test_every_case_is_measured_or_skipped_with_a_reason(report):
+    results = report["results"]
+    assert len(results) == len(BATCH_SIZES) * len(SAMPLERS) * len(N_CHUNKS)
+    skipped = [(r["sampler"], r["n_chunks"]) for r in results if "skipped" in r]
+    assert sorted(set(skipped)) == [("DDPM6", 4)]  # 6 % 4 != 0
+    assert len(skipped) == len(BATCH_SIZES)
+
+
+def test_counted_denoiser_calls_and_sane_values(report):
+    for r in report["results"]:
+        if "skipped" in r:
+            continue
+        n, h = SAMPLERS[r["sampler"]], r["n_chunks"]
+        assert r["num_inference_steps"] == n
+        assert r["sdp"]["denoiser_calls_per_chunk"] == n // h
+        assert r["dp"]["denoiser_calls_per_chunk"] == n
+        # zero primer: the first call costs one ordinary chunk; DP's first call is an ordinary chunk.
+        assert r["sdp"]["primer"]["denoiser_calls"] == n // h
+        assert r["dp"]["primer"]["denoiser_calls"] == n
+        check_timings(r["sdp"])
+        check_timings(r["dp"])
+        assert r["ratio"]["target"] == pytest.approx(1.1 / h)
+        assert r["ratio"]["sdp_over_dp_chunk_p50"] > 0
+        assert isinstance(r["ratio"]["meets_target"], bool)
+
+
+def test_denoise_primer_is_reported_apart(tmp_path):
+    report = run_bench(tmp_path, "--samplers", "DDIM4", "--n_chunks", "2", "--action_primer", "denoise")
+    (case,) = report["results"]
+    assert case["sdp"]["primer"]["denoiser_calls"] == 4 + 2  # full denoise, then one streaming step
+    assert case["sdp"]["denoiser_calls_per_chunk"] == 2
