@@ -81,6 +81,9 @@ class PushTZarr:
         start = 0 if episode == 0 else int(self.episode_ends[episode - 1])
         return slice(start, int(self.episode_ends[episode]))
 
+    def length(self, episode: int) -> int:
+        return self.frames(episode).stop - self.frames(episode).start
+
     def images(self, episode: int) -> np.ndarray:
         """One episode's images as uint8, refusing any value a uint8 PNG would not store exactly."""
         img = self.img[self.frames(episode)]
@@ -159,7 +162,7 @@ def check_episodes(episodes: Sequence[int], num_episodes: int) -> list[int]:
     outside = [ep for ep in episodes if not 0 <= ep < num_episodes]
     if outside:
         raise ConversionError(f"episodes {outside} do not exist; the zarr has episodes 0..{num_episodes - 1}")
-    if False:
+    if len(set(episodes)) != len(episodes):
         raise ConversionError(f"episodes {episodes} repeat an episode; select each episode once")
     return episodes
 
@@ -334,12 +337,10 @@ def _write_dataset(
         root=out_dir,
         use_videos=False,
         video_backend=VIDEO_BACKEND,
-        # PNG encoding runs in threads (zlib releases the GIL) while the next frames are computed.
-        image_writer_threads=2 if with_images else 0,
     )
     geometry = BlockGeometry()
-    total = sum(data.frames(ep).stop - data.frames(ep).start for ep in episodes)
-    progress = tqdm(total=total, unit="frame", desc=f"Push-T {variant} -> {out_dir.name}")
+    desc = f"Push-T {variant} -> {out_dir.name}"
+    progress = tqdm(total=sum(map(data.length, episodes)), unit="frame", desc=desc)
     with progress, _without_datasets_progress_bars():
         for episode in episodes:
             columns = episode_columns(data, episode, geometry, variant, with_images)
@@ -359,16 +360,18 @@ def verify_conversion(
     episode lengths and order, the task, and every stored value bit for bit: state, action and image
     as in the zarr, keypoints and next.* as recomputed."""
     dataset = LeRobotDataset(repo_id, root=out_dir, video_backend=VIDEO_BACKEND)
-    lengths = [data.frames(ep).stop - data.frames(ep).start for ep in episodes]
+    lengths = [data.length(ep) for ep in episodes]
     _expect(dataset.meta.total_episodes == len(episodes), f"{dataset.meta.total_episodes} episodes saved")
     _expect(dataset.meta.total_frames == sum(lengths), f"{dataset.meta.total_frames} frames saved")
     _expect(list(dataset.meta.tasks.index) == [PUSHT_TASK], f"tasks {list(dataset.meta.tasks.index)}")
     table = dataset.hf_dataset.with_format("numpy")
     geometry = BlockGeometry()
-    for new_index, (episode, length) in enumerate(zip(episodes, lengths, strict=True)):
-        rows = table[int(sum(lengths[:new_index])) : int(sum(lengths[: new_index + 1]))]
+    starts = np.cumsum([0, *lengths]).tolist()
+    for new_index, episode in enumerate(episodes):
+        rows = table[starts[new_index] : starts[new_index + 1]]
         _expect(np.all(rows["episode_index"] == new_index), f"episode {episode} is split or mislabelled")
-        _expect(np.array_equal(rows["frame_index"], np.arange(length)), f"episode {episode} frame order")
+        frames_in_order = np.array_equal(rows["frame_index"], np.arange(lengths[new_index]))
+        _expect(frames_in_order, f"frame order of episode {episode}")
         expected = episode_columns(data, episode, geometry, variant, with_images)
         for key, value in expected.items():
             _expect(np.array_equal(rows[key], value), f"{key} of episode {episode}")

@@ -12,18 +12,18 @@ its last checkpoint); an existing output directory is never overwritten without 
 
 import argparse
 import json
-import os
 import shutil
-import subprocess
 import sys
 import time
 from pathlib import Path
 
-import torch
+from .benchmarks.stream_cost import stream_cost
+from .lerobot_cli import CLIError, evaluate, pusht_eval_args, train
+from .pusht_data import NoPushTData, keypoints_dataset_args
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED_ZARR = REPO.parent / "shared" / "data" / "pusht" / "pusht_cchi_v7_replay.zarr"
 OBS_TYPE = "environment_state_agent_pos"
+EVAL_SEED = 100_000  # fixed episode seeds, shared with the quality benchmark
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -40,116 +40,6 @@ def parse_args(argv=None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def find_zarr(arg: Path | None) -> Path | None:
-    if arg is not None:
-        if not arg.exists():
-            sys.exit(f"error: --zarr {arg} does not exist.")
-        return arg
-    env = os.environ.get("SDP_PUSHT_ZARR")
-    if env:
-        if not Path(env).exists():
-            sys.exit(f"error: SDP_PUSHT_ZARR={env} does not exist.")
-        return Path(env)
-    return SHARED_ZARR if SHARED_ZARR.exists() else None
-
-
-def hub_offline() -> bool:
-    return os.environ.get("HF_HUB_OFFLINE", "0").lower() in ("1", "true", "yes", "on")
-
-
-def dataset_args(args: argparse.Namespace) -> list[str]:
-    """lerobot-train's dataset flags: the converted zarr when we have it, else the Hub."""
-    zarr = find_zarr(args.zarr)
-    if zarr is not None:
-        from .pusht_convert import convert_pusht
-
-        root = args.output_dir / "data" / "pusht_keypoints"
-        if not (root / "meta" / "info.json").exists():
-            print(f"[data] converting {zarr} -> {root}", flush=True)
-            convert_pusht(zarr, root, variant="keypoints", repo_id="local/pusht_keypoints", overwrite=True)
-        else:
-            print(f"[data] reusing {root}", flush=True)
-        return ["--dataset.repo_id=local/pusht_keypoints", f"--dataset.root={root}"]
-    if hub_offline():
-        sys.exit(
-            "error: no Push-T data. Pass --zarr /path/to/pusht_cchi_v7_replay.zarr (or set SDP_PUSHT_ZARR), "
-            "or go online (unset HF_HUB_OFFLINE) to download lerobot/pusht_keypoints from the Hub."
-        )
-    print("[data] using lerobot/pusht_keypoints from the Hugging Face Hub", flush=True)
-    return ["--dataset.repo_id=lerobot/pusht_keypoints"]
-
-
-def run_logged(cmd: list[str], log: Path) -> None:
-    """Run a LeRobot CLI, echoing its output and keeping a copy in `log`."""
-    print(f"[run] {' '.join(cmd)}\n[log] {log}", flush=True)
-    log.parent.mkdir(parents=True, exist_ok=True)
-    with log.open("a") as f, subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) as proc:
-        for line in proc.stdout:
-            sys.stdout.write(line)
-            f.write(line)
-    if proc.returncode != 0:
-        sys.exit(f"error: {Path(cmd[0]).name} failed (exit {proc.returncode}); see {log}")
-
-
-def cli(name: str) -> str:
-    return str(Path(sys.executable).parent / name)
-
-
-def train(args: argparse.Namespace, data: list[str]) -> Path:
-    train_dir = args.output_dir / "train"
-    last = train_dir / "checkpoints" / "last" / "pretrained_model"
-    with args.config_path.open() as f:
-        steps = args.steps or json.load(f)["steps"]
-    if (last / "train_config.json").exists():
-        done = json.loads((last / "train_config.json").read_text())
-        if done.get("steps") == steps and (last.parent / "training_state").exists():
-            state = json.loads((last.parent / "training_state" / "training_step.json").read_text())
-            if state.get("step") == steps:
-                print(f"[train] reusing finished run {train_dir}", flush=True)
-                return last
-        cmd = [cli("lerobot-train"), f"--config_path={last / 'train_config.json'}", "--resume=true"]
-    else:
-        cmd = [
-            cli("lerobot-train"), f"--config_path={args.config_path}", *data, f"--steps={steps}",
-            f"--save_freq={steps}", f"--output_dir={train_dir}", f"--policy.device={args.device}",
-            "--job_name=sdp_pusht_main",
-        ]
-    run_logged(cmd, args.output_dir / "logs" / "train.log")
-    return last
-
-
-def evaluate(args: argparse.Namespace, model_dir: Path) -> dict:
-    eval_dir = args.output_dir / "eval"
-    info_file = eval_dir / "eval_info.json"
-    if not info_file.exists():
-        n = args.eval_episodes
-        run_logged(
-            [
-                cli("lerobot-eval"), f"--policy.path={model_dir}", "--env.type=pusht", f"--env.obs_type={OBS_TYPE}",
-                f"--eval.n_episodes={n}", f"--eval.batch_size={min(n, 50)}", "--eval.use_async_envs=false",
-                f"--policy.device={args.device}", f"--output_dir={eval_dir}", "--seed=100000",
-            ],
-            args.output_dir / "logs" / "eval.log",
-        )
-    return json.loads(info_file.read_text())["overall"]
-
-
-def denoiser_calls_per_chunk(model_dir: Path, chunks: int = 3) -> float:
-    """Count U-Net calls over a few streaming chunks after the first (the primer is excluded)."""
-    from .modeling_sdp import SDPPolicy
-
-    policy = SDPPolicy.from_pretrained(model_dir).to("cpu").eval()
-    calls = []
-    policy._sampling_model().unet.register_forward_hook(lambda *_: calls.append(1))
-    obs = {k: torch.zeros(1, *ft.shape) for k, ft in policy.config.input_features.items()}
-    for _ in range(policy.config.n_action_steps):  # first chunk, primer included
-        policy.select_action(obs)
-    calls.clear()
-    for _ in range(chunks * policy.config.n_action_steps):
-        policy.select_action(obs)
-    return len(calls) / chunks
-
-
 def prepare_output_dir(args: argparse.Namespace) -> None:
     if args.output_dir.exists() and any(args.output_dir.iterdir()):
         if args.overwrite:
@@ -162,23 +52,25 @@ def prepare_output_dir(args: argparse.Namespace) -> None:
     args.output_dir.mkdir(parents=True, exist_ok=True)
 
 
-def main(argv=None) -> None:
-    args = parse_args(argv)
-    if not args.config_path.exists():
-        sys.exit(f"error: config {args.config_path} not found; pass --config_path (see the repo's configs/).")
-    prepare_output_dir(args)
+def run_job(args: argparse.Namespace) -> dict:
+    steps = args.steps or json.loads(args.config_path.read_text())["steps"]
     t0 = time.monotonic()
-    model_dir = train(args, dataset_args(args))
+    train_args = [
+        f"--config_path={args.config_path}", *keypoints_dataset_args(args.zarr, args.output_dir / "data"),
+        f"--save_freq={min(steps, 1000)}", f"--policy.device={args.device}", "--job_name=sdp_pusht_main",
+    ]
+    logs = args.output_dir / "logs"
+    model_dir = train(args.output_dir / "train", train_args, steps, logs / "train.log")
     t_train = time.monotonic() - t0
-    metrics = evaluate(args, model_dir)
-    calls = denoiser_calls_per_chunk(model_dir)
+    eval_args = pusht_eval_args(OBS_TYPE, args.eval_episodes, EVAL_SEED, args.device)
+    metrics = evaluate(model_dir, args.output_dir / "eval", eval_args, logs / "eval.log")
     config = json.loads((model_dir / "config.json").read_text())
-    summary = {
+    return {
         "pc_success": metrics["pc_success"],
         "avg_max_reward": metrics["avg_max_reward"],
         "avg_sum_reward": metrics["avg_sum_reward"],
         "n_episodes": metrics["n_episodes"],
-        "denoiser_calls_per_chunk": calls,
+        **stream_cost(model_dir),
         "num_inference_steps": config["num_inference_steps"] or config["num_train_timesteps"],
         "n_chunks": config["n_chunks"],
         "model_dir": str(model_dir),
@@ -186,13 +78,31 @@ def main(argv=None) -> None:
         "wall_time_s": round(time.monotonic() - t0, 1),
         "train_and_data_time_s": round(t_train, 1),
     }
-    (args.output_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+
+
+def print_summary(summary: dict, output_dir: Path) -> None:
     print("\n=== SDP on Push-T (keypoints) ===")
     print(f"pc_success          {summary['pc_success']:.1f} %  over {summary['n_episodes']} episodes")
     print(f"avg_max_reward      {summary['avg_max_reward']:.3f}")
-    print(f"denoiser calls      {calls:g} per chunk (N = {summary['num_inference_steps']}, h = {summary['n_chunks']}; DP: N)")
+    print(
+        f"denoiser calls      {summary['denoiser_calls_per_chunk']:g} per chunk (counted; N = "
+        f"{summary['num_inference_steps']}, h = {summary['n_chunks']}; Diffusion Policy: N)"
+    )
     print(f"videos              {summary['videos']}")
-    print(f"summary             {args.output_dir / 'summary.json'}  ({summary['wall_time_s']:.0f} s in all)")
+    print(f"summary             {output_dir / 'summary.json'}  ({summary['wall_time_s']:.0f} s in all)")
+
+
+def main(argv=None) -> None:
+    args = parse_args(argv)
+    if not args.config_path.exists():
+        sys.exit(f"error: config {args.config_path} not found; pass --config_path (see the repo's configs/).")
+    prepare_output_dir(args)
+    try:
+        summary = run_job(args)
+    except (CLIError, NoPushTData) as e:
+        sys.exit(f"error: {e}")
+    (args.output_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    print_summary(summary, args.output_dir)
 
 
 if __name__ == "__main__":

@@ -194,15 +194,17 @@ def _set(name, value_of):
         (lambda arrays: {}, [], "is not a zarr group"),
         (_drop("data/action"), [], "lacks data/action"),
         (_set("data/action", lambda a: a[:-1]), [], "data/action has shape (11, 2), expected (12, 2)"),
-        (_set("meta/episode_ends", lambda e: e - 1), [], "episode_ends ends at frame 11 but data/state has 12"),
+        (_set("meta/episode_ends", lambda e: e - 1), [], "ends at frame 11 but data/state has 12 frames"),
         (_set("meta/episode_ends", lambda e: e[[1, 0, 2]]), [], "is not strictly increasing"),
         (_set("data/img", lambda img: img + 0.5), [], "not integers in 0..255"),
-        (lambda arrays: arrays, ["--episodes", "0,9"], "episodes [9] do not exist; the zarr has episodes 0..2"),
+        (lambda arrays: arrays, ["--episodes", "0,9"], "[9] do not exist; the zarr has episodes 0..2"),
+        (lambda arrays: arrays, ["--episodes", "1,1"], "repeat an episode"),
         (lambda arrays: arrays, ["--episodes", "one"], "is not START:STOP or a comma list"),
     ],
     ids=[
         "missing-path", "not-a-zarr", "missing-array", "short-array", "episode-ends-short",
-        "episode-ends-unordered", "lossy-images", "episode-out-of-range", "bad-episode-spec",
+        "episode-ends-unordered", "lossy-images", "episode-out-of-range", "episode-repeated",
+        "bad-episode-spec",
     ],
 )  # fmt: skip
 def test_bad_input_is_one_clear_line_and_leaves_nothing(corrupt, args, message, tmp_path, capsys):

@@ -1,0 +1,82 @@
+"""Driving LeRobot's own CLIs (`lerobot-train`, `lerobot-eval`) as subprocesses, resumably.
+
+The main job and the quality benchmark train and evaluate exactly the way a user does, so what they
+report is what `lerobot-train` / `lerobot-eval` produce. A run directory is never deleted here: a
+finished training run is reused, an interrupted one resumes from its last checkpoint.
+"""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+
+class CLIError(RuntimeError):
+    pass
+
+
+def lerobot_bin(name: str) -> str:
+    """A console script of the running environment (the venv's, not whatever is first on PATH)."""
+    return str(Path(sys.executable).parent / name)
+
+
+def run_logged(cmd: list[str], log: Path, echo: bool = True) -> None:
+    """Run a command, echoing its output and appending it to `log`."""
+    log.parent.mkdir(parents=True, exist_ok=True)
+    print(f"[run] {' '.join(cmd)}\n[log] {log}", flush=True)
+    with log.open("a") as f, subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) as proc:
+        for line in proc.stdout:
+            if echo:
+                sys.stdout.write(line)
+            f.write(line)
+    if proc.returncode != 0:
+        raise CLIError(f"{Path(cmd[0]).name} failed (exit {proc.returncode}); see {log}")
+
+
+def last_checkpoint(train_dir: Path) -> Path:
+    return train_dir / "checkpoints" / "last"
+
+
+def trained_steps(train_dir: Path) -> int:
+    """Optimizer steps of the newest checkpoint (0 when there is none)."""
+    state = last_checkpoint(train_dir) / "training_state" / "training_step.json"
+    return json.loads(state.read_text())["step"] if state.exists() else 0
+
+
+def train(train_dir: Path, args: list[str], steps: int, log: Path) -> Path:
+    """`lerobot-train ARGS --steps=STEPS --output_dir=TRAIN_DIR`, resumed or skipped when a checkpoint
+    exists. Returns the final pretrained_model directory."""
+    model_dir = last_checkpoint(train_dir) / "pretrained_model"
+    done = trained_steps(train_dir)
+    if done >= steps:
+        print(f"[train] {train_dir}: finished ({done} steps), reusing it", flush=True)
+        return model_dir
+    if done > 0:
+        print(f"[train] {train_dir}: resuming at step {done}/{steps}", flush=True)
+        cmd = [lerobot_bin("lerobot-train"), f"--config_path={model_dir / 'train_config.json'}", "--resume=true"]
+    elif train_dir.exists():
+        raise CLIError(f"{train_dir} exists but holds no checkpoint: move it away or delete it, then rerun.")
+    else:
+        cmd = [lerobot_bin("lerobot-train"), *args, f"--steps={steps}", f"--output_dir={train_dir}"]
+    run_logged(cmd, log)
+    return model_dir
+
+
+def evaluate(model_dir: Path, eval_dir: Path, args: list[str], log: Path) -> dict:
+    """`lerobot-eval --policy.path=MODEL_DIR ARGS --output_dir=EVAL_DIR`, skipped when its
+    eval_info.json exists. Returns the overall metrics."""
+    info = eval_dir / "eval_info.json"
+    if not info.exists():
+        cmd = [lerobot_bin("lerobot-eval"), f"--policy.path={model_dir}", *args, f"--output_dir={eval_dir}"]
+        run_logged(cmd, log)
+    return json.loads(info.read_text())["overall"]
+
+
+def pusht_eval_args(obs_type: str, n_episodes: int, seed: int, device: str, episode_length: int | None = None) -> list[str]:
+    """Push-T evaluation on batched sync envs (async Push-T envs are broken in lerobot 0.6.1)."""
+    args = [
+        "--env.type=pusht", f"--env.obs_type={obs_type}", f"--eval.n_episodes={n_episodes}",
+        f"--eval.batch_size={min(n_episodes, 50)}", "--eval.use_async_envs=false",
+        f"--policy.device={device}", f"--seed={seed}",
+    ]
+    return args + ([f"--env.episode_length={episode_length}"] if episode_length else [])
