@@ -108,6 +108,14 @@ class SDPConfig(PreTrainedConfig):
 
     def __post_init__(self):
         super().__post_init__()
+        try:
+            self._validate()
+        except ValueError as e:
+            # draccus replaces the reason with "Couldn't instantiate class SDPConfig": say it first.
+            logging.error("Invalid SDP config: %s", e)
+            raise
+
+    def _validate(self) -> None:
         if not self.vision_backbone.startswith("resnet"):
             raise ValueError(f"`vision_backbone` must be a ResNet variant, got {self.vision_backbone!r}.")
         _check_choice("prediction_type", self.prediction_type, ("epsilon", "sample"))

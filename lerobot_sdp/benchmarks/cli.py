@@ -10,10 +10,11 @@ from types import ModuleType
 
 from lerobot.utils.utils import init_logging
 
-from . import latency
+from . import latency, quality
 
 SUBCOMMANDS: dict[str, ModuleType] = {
     "latency": latency,
+    "quality": quality,
 }
 
 

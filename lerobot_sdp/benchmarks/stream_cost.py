@@ -11,15 +11,17 @@ from lerobot.policies.factory import get_policy_class
 from .latency import CallProbe, denoisers
 
 
-def load_policy(model_dir: Path, device: str = "cpu"):
+def load_policy(model_dir: Path, device: str = "cpu", overrides: dict | None = None):
     config = PreTrainedConfig.from_pretrained(model_dir)
     config.device = device
+    for key, value in (overrides or {}).items():
+        setattr(config, key, value)
     return get_policy_class(config.type).from_pretrained(model_dir, config=config).eval()
 
 
 @torch.no_grad()
-def stream_cost(model_dir: Path, chunks: int = 5, device: str = "cpu") -> dict:
-    policy = load_policy(model_dir, device)
+def stream_cost(model_dir: Path, chunks: int = 5, device: str = "cpu", overrides: dict | None = None) -> dict:
+    policy = load_policy(model_dir, device, overrides)
     chunk_len = policy.config.n_action_steps
     obs = {k: torch.zeros(1, *ft.shape, device=device) for k, ft in policy.config.input_features.items()}
     policy.reset()

@@ -1,0 +1,206 @@
+"""Quality: SDP against LeRobot's Diffusion Policy on Push-T at equal budget, plus the paper's ablations.
+
+Every run trains through `lerobot-train` and evaluates through `lerobot-eval` on one fixed set of
+episode seeds (batched sync envs), with the same data, U-Net size, observation history, batch
+size, steps, learning-rate schedule and seed for every policy. SDP is trained without EMA here
+because LeRobot's Diffusion Policy has none: the two differ only in how they corrupt and sample.
+
+Runs resume where they stopped (rerun the same command); `--status` prints where each run stands.
+Results: OUTPUT_DIR/results.json and OUTPUT_DIR/results.md.
+"""
+
+import argparse
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from ..lerobot_cli import evaluate, pusht_eval_args, train, trained_steps
+from ..pusht_data import keypoints_dataset_args
+from .stream_cost import stream_cost
+
+OBS_TYPE = "environment_state_agent_pos"
+EVAL_SEED = 100_000
+DP_HORIZON = 16  # LeRobot's reference Push-T Diffusion Policy (lerobot/diffusion_pusht)
+
+
+@dataclass(frozen=True)
+class Budget:
+    steps: int
+    batch_size: int
+    down_dims: tuple[int, ...]
+    embed_dim: int
+    lr: float
+    warmup: int
+    n_episodes: int
+    num_inference_steps: int = 100
+    scheduler: str = "DDPM"
+    episode_length: int | None = None  # None: Push-T's own 300
+    ablation_steps: int | None = None  # the reduced budget of the ablation runs
+
+
+BUDGETS = {
+    # plumbing check for the test suite: seconds, meaningless numbers
+    "tiny": Budget(2, 4, (16, 32), 16, 1e-4, 0, 2, 8, "DDIM", episode_length=10, ablation_steps=2),
+    # state-based keypoints Push-T on 2 CPU cores: a few hours for the comparison
+    "cpu": Budget(20_000, 64, (64, 128, 256), 64, 5e-4, 500, 100, ablation_steps=3_000),
+    # the authors' hyperparameters (sdp-algorithm.md section 9), for a GPU
+    "paper": Budget(100_000, 256, (256, 512, 1024), 256, 1e-4, 500, 100, ablation_steps=20_000),
+}
+
+SCHEMES = {  # the paper's Table (b): name -> noise_schemes weights
+    "chunkwise": {"chunkwise": 1.0},
+    "linear": {"linear": 1.0},
+    "independent": {"independent": 1.0},
+    "constant": {"constant": 1.0},
+    "ind67_lin33": {"independent": 0.67, "linear": 0.33},
+    "ind67_cw33": {"independent": 0.67, "chunkwise": 0.33},
+    "cw80_const20": {"chunkwise": 0.8, "constant": 0.2},
+}
+PAPER_SCHEMES = {"chunkwise": 0.86, "linear": 0.36, "independent": 0.85, "constant": 0.29,
+                 "ind67_lin33": 0.87, "ind67_cw33": 0.89, "cw80_const20": 0.90}
+PAPER_PRIMERS = {"zero": 0.90, "constant": 0.90, "denoise": 0.90}
+
+
+@dataclass
+class Run:
+    name: str
+    policy_args: list[str]
+    steps: int
+    trains_as: str = ""  # another run whose trained model this one evaluates (primer ablation)
+    eval_overrides: dict = field(default_factory=dict)
+
+    @property
+    def model_run(self) -> str:
+        return self.trains_as or self.name
+
+
+def policy_args(budget: Budget, policy: str, device: str) -> list[str]:
+    common = [
+        f"--policy.type={policy}", "--policy.n_obs_steps=2", "--policy.n_action_steps=8",
+        f"--policy.down_dims=[{','.join(map(str, budget.down_dims))}]", "--policy.kernel_size=5",
+        f"--policy.diffusion_step_embed_dim={budget.embed_dim}", f"--policy.noise_scheduler_type={budget.scheduler}",
+        "--policy.num_train_timesteps=100", f"--policy.num_inference_steps={budget.num_inference_steps}",
+        f"--policy.optimizer_lr={budget.lr}", f"--policy.scheduler_warmup_steps={budget.warmup}",
+        f"--policy.device={device}", "--policy.push_to_hub=false",
+    ]
+    if policy == "diffusion":
+        return common + [f"--policy.horizon={DP_HORIZON}", "--policy.pretrained_backbone_weights=null"]
+    return common + ["--policy.use_ema=false"]
+
+
+def sdp_args(budget: Budget, device: str, n_chunks: int, schemes: dict | None = None) -> list[str]:
+    weights = {"constant": 0.0, "linear": 0.0, "independent": 0.0, "chunkwise": 0.0, **(schemes or SCHEMES["cw80_const20"])}
+    return policy_args(budget, "sdp", device) + [f"--policy.n_chunks={n_chunks}"] + [
+        f"--policy.noise_schemes.{k}={v}" for k, v in weights.items()
+    ]
+
+
+def comparison_runs(budget: Budget, device: str) -> list[Run]:
+    return [
+        Run("dp", policy_args(budget, "diffusion", device), budget.steps),
+        Run("sdp_h2", sdp_args(budget, device, 2), budget.steps),
+        Run("sdp_h4", sdp_args(budget, device, 4), budget.steps),
+    ]
+
+
+def ablation_runs(budget: Budget, device: str) -> list[Run]:
+    steps = budget.ablation_steps or budget.steps
+    runs = [Run(f"scheme_{name}", sdp_args(budget, device, 2, w), steps) for name, w in SCHEMES.items()]
+    runs += [
+        Run(f"primer_{p}", [], steps, trains_as="scheme_cw80_const20", eval_overrides={"action_primer": p})
+        for p in ("zero", "constant", "denoise")
+    ]
+    return runs
+
+
+def run_dir(output_dir: Path, run: Run) -> Path:
+    return output_dir / "runs" / run.name
+
+
+def execute(run: Run, output_dir: Path, data_args: list[str], common: list[str], budget: Budget, device: str) -> dict:
+    """Train (or resume, or reuse) and evaluate one run; returns its row."""
+    model_root = output_dir / "runs" / run.model_run
+    timing_file = model_root / "timing.json"
+    timing = json.loads(timing_file.read_text()) if timing_file.exists() else {"train_wall_s": 0.0}
+    t0 = time.monotonic()
+    model_dir = train(model_root / "train", [*data_args, *common, *run.policy_args], run.steps, model_root / "train.log")
+    if not run.trains_as:
+        timing["train_wall_s"] += time.monotonic() - t0
+        timing_file.write_text(json.dumps(timing))
+    overrides = [f"--policy.{k}={v}" for k, v in run.eval_overrides.items()]
+    eval_args = pusht_eval_args(OBS_TYPE, budget.n_episodes, EVAL_SEED, device, budget.episode_length) + overrides
+    here = run_dir(output_dir, run)
+    metrics = evaluate(model_dir, here / "eval", eval_args, here / "eval.log")
+    cost = stream_cost(model_dir, overrides=run.eval_overrides)
+    return {
+        "run": run.name, "pc_success": metrics["pc_success"], "avg_max_reward": metrics["avg_max_reward"],
+        "n_episodes": metrics["n_episodes"], "steps": run.steps, **cost,
+        "train_wall_s": round(timing["train_wall_s"], 1),
+    }
+
+
+def status(runs: list[Run], output_dir: Path) -> list[str]:
+    lines = []
+    for run in runs:
+        done = trained_steps(output_dir / "runs" / run.model_run / "train")
+        evaluated = (run_dir(output_dir, run) / "eval" / "eval_info.json").exists()
+        state = "evaluated" if evaluated else ("trained" if done >= run.steps else f"training {done}/{run.steps}")
+        lines.append(f"{run.name:24s} {state}")
+    return lines
+
+
+def markdown(rows: dict[str, dict], budget_name: str, budget: Budget) -> str:
+    head = "| run | avg_max_reward | pc_success | paper score | denoiser calls / chunk | eval latency / chunk (ms, CPU, batch 1) | train wall (s) | steps | episodes |"
+    sep = "|" + "---|" * 9
+
+    def line(name, row, paper=""):
+        return (f"| {name} | {row['avg_max_reward']:.3f} | {row['pc_success']:.1f} | {paper} | "
+                f"{row['denoiser_calls_per_chunk']:g} | {row['latency_per_chunk_ms']:.1f} | {row['train_wall_s']:.0f} | "
+                f"{row['steps']} | {row['n_episodes']} |")
+
+    out = [f"Budget `{budget_name}`: {asdict(budget)}", "", "### Comparison", "", head, sep]
+    out += [line(n, rows[n]) for n in ("dp", "sdp_h2", "sdp_h4") if n in rows]
+    ablations = [n for n in rows if n.startswith(("scheme_", "primer_"))]
+    if ablations:
+        out += ["", f"### Ablations (reduced budget: {budget.ablation_steps} steps)", "", head, sep]
+        paper = {f"scheme_{k}": v for k, v in PAPER_SCHEMES.items()} | {f"primer_{k}": v for k, v in PAPER_PRIMERS.items()}
+        out += [line(n, rows[n], f"{paper[n]:.2f}") for n in ablations]
+    return "\n".join(out) + "\n"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--budget", choices=list(BUDGETS), default="cpu")
+    parser.add_argument("--runs", choices=["comparison", "ablations", "all"], default="comparison")
+    parser.add_argument("--output_dir", type=Path, default=None, help="default: outputs/quality_<budget>")
+    parser.add_argument("--zarr", type=Path, default=None, help="Push-T zarr (default: $SDP_PUSHT_ZARR, ../shared/...)")
+    parser.add_argument("--dataset_repo_id", default=None, help="use this LeRobotDataset instead (with --dataset_root)")
+    parser.add_argument("--dataset_root", type=Path, default=None)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--status", action="store_true", help="print where each run stands and exit")
+
+
+def run(args: argparse.Namespace) -> dict:
+    budget = BUDGETS[args.budget]
+    output_dir = args.output_dir or Path(f"outputs/quality_{args.budget}")
+    runs = {"comparison": comparison_runs, "ablations": ablation_runs}
+    selected = [r for kind in (runs if args.runs == "all" else [args.runs]) for r in runs[kind](budget, args.device)]
+    print("\n".join(status(selected, output_dir)), flush=True)
+    if args.status:
+        return {}
+    if args.dataset_repo_id:
+        data_args = [f"--dataset.repo_id={args.dataset_repo_id}"] + ([f"--dataset.root={args.dataset_root}"] if args.dataset_root else [])
+    else:
+        data_args = keypoints_dataset_args(args.zarr, output_dir / "data")
+    common = [f"--batch_size={budget.batch_size}", "--seed=1000", "--num_workers=0", "--wandb.enable=false",
+              f"--save_freq={max(1, min(budget.steps, 2000))}", "--log_freq=200"]
+    results_file = output_dir / "results.json"
+    rows = json.loads(results_file.read_text())["rows"] if results_file.exists() else {}
+    for r in selected:
+        rows[r.name] = execute(r, output_dir, data_args, common, budget, args.device)
+        report = {"budget": args.budget, "settings": asdict(budget), "eval_seed": EVAL_SEED, "rows": rows}
+        results_file.write_text(json.dumps(report, indent=2))
+        (output_dir / "results.md").write_text(markdown(rows, args.budget, budget))
+        print("\n".join(status(selected, output_dir)), flush=True)
+    print((output_dir / "results.md").read_text())
+    return report
