@@ -168,3 +168,16 @@ def test_wrong_action_horizon_in_batch_is_named():
     batch["action"] = batch["action"][:, :5]
     with pytest.raises(ValueError, match="action frames but SDP's horizon"):
         SDPPolicy(cfg).forward(batch)
+
+
+@pytest.mark.parametrize("separate", [False, True])
+def test_two_cameras_condition_the_policy(separate):
+    from lerobot.configs.types import FeatureType, PolicyFeature
+
+    cfg = tiny_config(image=True, crop_shape=(28, 28), use_separate_rgb_encoder_per_camera=separate)
+    cfg.input_features["observation.images.wrist"] = PolicyFeature(FeatureType.VISUAL, (3, 32, 32))
+    policy = SDPPolicy(cfg)
+    loss, _ = policy.forward(training_batch(cfg))
+    loss.backward()
+    action = policy.eval().select_action(observation(cfg, batch_size=3))
+    assert torch.isfinite(loss) and action.shape == (3, 2)
