@@ -16,21 +16,25 @@ import torch
 from torch import Tensor
 
 from .geometry import ChunkGeometry
-from .schedule import PerSlotSchedule
+from .schedule import PerSlotSchedule, StepCoefficients
 
 # (noisy sequence (B, T, A), training timesteps (B, T)) -> model output (B, T, A)
 Denoiser = Callable[[Tensor, Tensor], Tensor]
 
 
+def reverse_plan(schedule: PerSlotSchedule, k_start: Tensor, n_steps: int) -> list[StepCoefficients]:
+    """Coefficients of ``n_steps`` reverse steps starting from per-slot steps-remaining ``k_start``."""
+    return [schedule.coefficients((k_start - j).clamp(min=0)) for j in range(n_steps)]
+
+
 def run_reverse_steps(
-    schedule: PerSlotSchedule, denoiser: Denoiser, sample: Tensor, k_start: Tensor, n_steps: int
+    schedule: PerSlotSchedule, denoiser: Denoiser, sample: Tensor, plan: list[StepCoefficients]
 ) -> Tensor:
-    """Apply ``n_steps`` reverse steps from per-slot steps-remaining ``k_start`` (T,)."""
+    """One denoiser call and one per-slot reverse step per entry of ``plan``."""
     batch = sample.shape[0]
-    for j in range(n_steps):
-        k = (k_start - j).clamp(min=0)
-        model_output = denoiser(sample, schedule.train_timesteps(k).expand(batch, -1))
-        sample = schedule.step(model_output, k.expand(batch, -1), sample)
+    for c in plan:
+        model_output = denoiser(sample, c.timesteps.expand(batch, -1))
+        sample = schedule.apply_step(c, model_output, sample)
     return sample
 
 
@@ -42,6 +46,7 @@ class StreamingBuffer:
         self.geometry = geometry
         self.schedule = schedule
         self.sample: Tensor | None = None
+        self._plan: list[StepCoefficients] = []  # the s steps of a call, same every call
 
     @property
     def batch_size(self) -> int | None:
@@ -50,30 +55,32 @@ class StreamingBuffer:
     def clear(self) -> None:
         self.sample = None
 
-    def _start_timesteps(self, device: torch.device) -> Tensor:
-        return self.schedule.train_timesteps(self.geometry.start_levels.to(device))
+    def _call_plan(self, device: torch.device) -> list[StepCoefficients]:
+        if not self._plan or self._plan[0].timesteps.device != device:
+            k_start = self.geometry.start_levels.to(device)
+            self._plan = reverse_plan(self.schedule, k_start, self.geometry.steps_per_call)
+        return self._plan
 
     def prime(self, primer: Tensor) -> None:
         """Noise a clean (normalised) primer sequence (B, T, A) to the start levels (paper Eq. 4)."""
-        t = self._start_timesteps(primer.device).expand(primer.shape[0], -1)
+        t = self._call_plan(primer.device)[0].timesteps.expand(primer.shape[0], -1)
         self.sample = self.schedule.add_noise(primer, torch.randn_like(primer), t)
 
     def advance(self, denoiser: Denoiser) -> Tensor:
         """Run s denoiser calls, pop the now clean chunk (B, Tb, A) and roll the buffer forward."""
         if self.sample is None:
             raise RuntimeError("The streaming buffer is empty: call prime() after reset().")
-        g = self.geometry
-        k_start = g.start_levels.to(self.sample.device)
-        sample = run_reverse_steps(self.schedule, denoiser, self.sample, k_start, g.steps_per_call)
-        chunk = sample[:, g.executed]
-        self.sample = self._shift(sample)
+        plan = self._call_plan(self.sample.device)
+        sample = run_reverse_steps(self.schedule, denoiser, self.sample, plan)
+        chunk = sample[:, self.geometry.executed]
+        self.sample = self._shift(sample, plan[0])
         return chunk
 
-    def _shift(self, sample: Tensor) -> Tensor:
+    def _shift(self, sample: Tensor, start: StepCoefficients) -> Tensor:
         g = self.geometry
         kept = sample[:, g.chunk_len : g.n_past + g.n_future]  # past slots, then chunks 1..h-1
         past, rest = kept[:, : g.n_past], kept[:, g.n_past :]
-        chunk0_t = self._start_timesteps(sample.device)[: g.n_past].expand(sample.shape[0], -1)
-        past = self.schedule.add_noise(past, torch.randn_like(past), chunk0_t)
+        # re-noise the executed actions now in the past slots to chunk 0's start level
+        past = start.sqrt_abar[: g.n_past] * past + start.sqrt_one_minus_abar[: g.n_past] * torch.randn_like(past)
         tail = torch.randn_like(sample[:, : g.chunk_len + g.n_pad])  # new last chunk + padding, level N
         return torch.cat([past, rest, tail], dim=1)

@@ -21,7 +21,7 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 from safetensors import safe_open
 from torch import Tensor
 
-from .buffer import Denoiser, StreamingBuffer, run_reverse_steps
+from .buffer import Denoiser, StreamingBuffer, reverse_plan, run_reverse_steps
 from .configuration_sdp import SDPConfig
 from .ema import ema_decay, ema_update
 from .noise_schemes import sample_levels
@@ -61,8 +61,8 @@ class SDPModel(DiffusionModel):
         shape = (batch_size, self.geometry.horizon, self.config.action_feature.shape[0])
         sample = noise if noise is not None else torch.randn(shape, generator=generator, device=param.device)
         n = self.num_inference_steps
-        k_start = torch.full((self.geometry.horizon,), n, device=sample.device)
-        return run_reverse_steps(self.schedule, self.denoiser(global_cond), sample, k_start, n)
+        plan = reverse_plan(self.schedule, torch.full((self.geometry.horizon,), n, device=sample.device), n)
+        return run_reverse_steps(self.schedule, self.denoiser(global_cond), sample, plan)
 
     def compute_loss(self, batch: dict[str, Tensor]) -> Tensor:
         """Paper Eq. 5: MSE between the noise (or clean actions) and the prediction, levels per slot."""
@@ -174,8 +174,6 @@ class SDPPolicy(PreTrainedPolicy):
                     f"Observation `{key}` has shape {tuple(value.shape)}, expected (batch, "
                     f"{', '.join(map(str, ft.shape))}). Check the environment matches the training data."
                 )
-            if not torch.isfinite(value).all():
-                raise ValueError(f"Observation `{key}` contains NaN or inf; refusing to act on it.")
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], noise: Tensor | None = None) -> Tensor:
@@ -202,6 +200,9 @@ class SDPPolicy(PreTrainedPolicy):
             batch = {k: torch.stack(list(self._queues[k]), dim=1) for k in self._queues if k != ACTION}
         else:
             batch = self._stack_cameras(batch)
+        for key, value in batch.items():  # once per chunk: on a GPU this check synchronises
+            if not torch.isfinite(value).all():
+                raise ValueError(f"Observation `{key}` contains NaN or inf; refusing to act on it.")
         batch_size = batch[OBS_STATE].shape[0]
         if self._buffer.batch_size not in (None, batch_size):
             self._buffer.clear()

@@ -12,6 +12,8 @@ is the single map between them: the table diffusers' ``set_timesteps(N)`` builds
 ``k = 0 -> t = -1`` meaning "clean".
 """
 
+from typing import NamedTuple
+
 import torch
 from diffusers import DDIMScheduler, DDPMScheduler
 from torch import Tensor, nn
@@ -58,41 +60,70 @@ class PerSlotSchedule(nn.Module):
         abar = self.alpha_bar(t)
         return abar.sqrt() * x0 + (1 - abar).sqrt() * eps
 
-    def _x0_and_eps(self, model_output: Tensor, sample: Tensor, abar: Tensor) -> tuple[Tensor, Tensor]:
+    def coefficients(self, k: Tensor) -> "StepCoefficients":
+        """Gather every per-slot coefficient of one reverse step from steps-remaining ``k`` (..., T).
+
+        A streaming call visits the same s level patterns every time, so callers compute these once
+        and reuse them: a step is then a handful of tensor ops (the buffer's bookkeeping budget)."""
+        t, t_prev = self.train_timesteps(k), self.train_timesteps((k - 1).clamp(min=0))
+        abar, abar_prev = self.alpha_bar(t), self.alpha_bar(t_prev)
+        common = dict(timesteps=t, active=(k > 0).unsqueeze(-1), sqrt_abar=abar.sqrt(), sqrt_one_minus_abar=(1 - abar).sqrt())
+        if self.is_ddim:
+            return StepCoefficients(**common, **ddim_coefficients(abar, abar_prev))
+        return StepCoefficients(**common, **ddpm_coefficients(abar, abar_prev, t))
+
+    def apply_step(self, c: "StepCoefficients", model_output: Tensor, sample: Tensor, noise: Tensor | None = None) -> Tensor:
+        """x_t -> x_{t_prev} for every slot with k > 0; slots with k = 0 are left untouched
+        (indexing abar at k = 0 would silently wrap to the noisiest level)."""
         if self.prediction_type == "epsilon":
-            x0 = (sample - (1 - abar).sqrt() * model_output) / abar.sqrt()
-            return x0, model_output
-        x0 = model_output  # "sample" prediction
-        return x0, (sample - abar.sqrt() * x0) / (1 - abar).sqrt()
-
-    def _clip(self, x0: Tensor) -> Tensor:
-        return x0 if self.clip_range is None else x0.clamp(-self.clip_range, self.clip_range)
-
-    def ddpm_step(self, model_output: Tensor, k: Tensor, sample: Tensor, noise: Tensor) -> Tensor:
-        """One DDPM reverse step per slot (diffusers DDPMScheduler.step, variance "fixed_small")."""
-        t, t_prev = self.train_timesteps(k), self.train_timesteps((k - 1).clamp(min=0))
-        abar, abar_prev = self.alpha_bar(t), self.alpha_bar(t_prev)
-        beta_t = 1 - abar / abar_prev
-        x0, _ = self._x0_and_eps(model_output, sample, abar)
-        x0 = self._clip(x0)
-        mean = (abar_prev.sqrt() * beta_t / (1 - abar)) * x0 + ((1 - beta_t).sqrt() * (1 - abar_prev) / (1 - abar)) * sample
-        variance = ((1 - abar_prev) / (1 - abar) * beta_t).clamp(min=1e-20)
-        # diffusers adds no noise on the step from t = 0.
-        return mean + (t > 0).unsqueeze(-1) * variance.sqrt() * noise
-
-    def ddim_step(self, model_output: Tensor, k: Tensor, sample: Tensor) -> Tensor:
-        """One deterministic DDIM reverse step per slot (diffusers DDIMScheduler.step, eta = 0)."""
-        t, t_prev = self.train_timesteps(k), self.train_timesteps((k - 1).clamp(min=0))
-        abar, abar_prev = self.alpha_bar(t), self.alpha_bar(t_prev)
-        x0, eps = self._x0_and_eps(model_output, sample, abar)
-        x0 = self._clip(x0)
-        return abar_prev.sqrt() * x0 + (1 - abar_prev).sqrt() * eps
+            eps = model_output
+            x0 = (sample - c.sqrt_one_minus_abar * eps) / c.sqrt_abar
+        else:  # "sample"; diffusers derives epsilon from the unclipped x0
+            x0 = model_output
+            eps = (sample - c.sqrt_abar * x0) / c.sqrt_one_minus_abar
+        if self.clip_range is not None:
+            x0 = x0.clamp(-self.clip_range, self.clip_range)
+        prev = c.x0_coef * x0
+        if c.xt_coef is not None:
+            prev = prev + c.xt_coef * sample
+        if c.eps_coef is not None:
+            prev = prev + c.eps_coef * eps
+        if c.noise_std is not None:
+            prev = prev + c.noise_std * (torch.randn_like(sample) if noise is None else noise)
+        return torch.where(c.active, prev, sample)
 
     def step(self, model_output: Tensor, k: Tensor, sample: Tensor, noise: Tensor | None = None) -> Tensor:
-        """Move every slot with k > 0 one step towards clean; slots with k = 0 are left untouched
-        (indexing abar at k = 0 would silently wrap to the noisiest level)."""
-        if self.is_ddim:
-            stepped = self.ddim_step(model_output, k, sample)
-        else:
-            stepped = self.ddpm_step(model_output, k, sample, torch.randn_like(sample) if noise is None else noise)
-        return torch.where((k > 0).unsqueeze(-1), stepped, sample)
+        """One reverse step from per-slot steps-remaining ``k`` (B, T)."""
+        return self.apply_step(self.coefficients(k), model_output, sample, noise)
+
+
+class StepCoefficients(NamedTuple):
+    """Per-slot coefficients of one reverse step, shape (..., T, 1) (timesteps: (..., T)).
+    prev = x0_coef * x0 + xt_coef * x_t + eps_coef * eps + noise_std * z, unused terms None."""
+
+    timesteps: Tensor
+    active: Tensor
+    sqrt_abar: Tensor
+    sqrt_one_minus_abar: Tensor
+    x0_coef: Tensor
+    xt_coef: Tensor | None
+    eps_coef: Tensor | None
+    noise_std: Tensor | None
+
+
+def ddpm_coefficients(abar: Tensor, abar_prev: Tensor, t: Tensor) -> dict:
+    """DDPM posterior q(x_{t_prev} | x_t, x0) (Ho et al. Eq. 7, diffusers DDPMScheduler.step with
+    variance "fixed_small"); diffusers adds no noise on the step from t = 0."""
+    beta_t = 1 - abar / abar_prev
+    variance = ((1 - abar_prev) / (1 - abar) * beta_t).clamp(min=1e-20)
+    return dict(
+        x0_coef=abar_prev.sqrt() * beta_t / (1 - abar),
+        xt_coef=(1 - beta_t).sqrt() * (1 - abar_prev) / (1 - abar),
+        eps_coef=None,
+        noise_std=variance.sqrt() * (t > 0).unsqueeze(-1),
+    )
+
+
+def ddim_coefficients(abar: Tensor, abar_prev: Tensor) -> dict:
+    """Deterministic DDIM (Song et al. Eq. 12 with eta = 0, diffusers DDIMScheduler.step)."""
+    return dict(x0_coef=abar_prev.sqrt(), xt_coef=None, eps_coef=(1 - abar_prev).sqrt(), noise_std=None)

@@ -1,12 +1,14 @@
 """The latency benchmark end to end on a tiny CPU run, through the `lerobot-sdp-bench` entry point:
-the JSON's fields, counted denoiser calls and sane (not timed) values."""
+the JSON's fields, counted denoiser calls and sane (not timed) values; and the fairness of the
+comparison (DP gets SDP's denoiser and horizon)."""
 
 import json
 import math
 
 import pytest
+import torch
 
-from lerobot_sdp.benchmarks import cli
+from lerobot_sdp.benchmarks import cli, latency
 
 SAMPLERS = {"DDIM4": 4, "DDPM6": 6}
 N_CHUNKS = [1, 2, 4]
@@ -14,7 +16,13 @@ BATCH_SIZES = [1, 3]
 
 
 def run_bench(tmp_path, *extra: str) -> dict:
-    cli.main(["latency", "--quick", "--device", "cpu", "--steps", "2", "--output_dir", str(tmp_path), *extra])
+    threads = torch.get_num_threads()
+    # One thread: on a loaded CI machine two OpenMP threads can be several times slower.
+    cli.main(
+        ["latency", "--quick", "--device", "cpu", "--steps", "2", "--num_threads", "1"]
+        + ["--output_dir", str(tmp_path), *extra]
+    )
+    assert torch.get_num_threads() == threads  # an in-process run leaves the caller's setting alone
     return json.loads((tmp_path / "latency.json").read_text())
 
 
@@ -79,3 +87,27 @@ def test_denoise_primer_is_reported_apart(tmp_path):
     (case,) = report["results"]
     assert case["sdp"]["primer"]["denoiser_calls"] == 4 + 2  # full denoise, then one streaming step
     assert case["sdp"]["denoiser_calls_per_chunk"] == 2
+
+
+def test_dp_gets_the_same_denoiser_and_horizon_as_sdp():
+    args = cli.build_parser().parse_args(["latency", "--quick"])
+    latency.resolve_defaults(args)
+    sdp, dp = latency.build_policies(args, latency.Case("cpu", 1, latency.Sampler("DDIM", 4), 2))
+    assert dp.config.horizon == sdp.config.horizon == 20  # 1 past + 2 chunks x 8 + 3 padding
+    for name in (
+        "down_dims",
+        "kernel_size",
+        "diffusion_step_embed_dim",
+        "noise_scheduler_type",
+        "crop_shape",
+    ):
+        assert getattr(dp.config, name) == getattr(sdp.config, name), name
+    assert dp.config.num_inference_steps == sdp.config.num_inference_steps == 4
+
+    def unet_shapes(policy):
+        (unet, *_) = latency.denoisers(policy)
+        return {
+            k: v.shape for k, v in unet.state_dict().items() if not k.startswith("diffusion_step_encoder")
+        }
+
+    assert unet_shapes(sdp) == unet_shapes(dp)  # only the step encoder differs (per-slot levels)
