@@ -23,16 +23,16 @@ after the write by reloading the dataset.
 import argparse
 import shutil
 import warnings
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import datasets
 import numpy as np
 import zarr
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from tqdm import tqdm
+
+from .progress import without_datasets_progress_bars
 
 with warnings.catch_warnings():
     # pygame, imported by gym-pusht, warns that pkg_resources is deprecated: noise for our users.
@@ -314,18 +314,6 @@ def convert_pusht(
     return out_dir
 
 
-@contextmanager
-def _without_datasets_progress_bars() -> Iterator[None]:
-    """LeRobot's save_episode runs a `datasets` map per episode; its bars would interleave with ours."""
-    were_disabled = datasets.are_progress_bars_disabled()
-    datasets.disable_progress_bars()
-    try:
-        yield
-    finally:
-        if not were_disabled:
-            datasets.enable_progress_bars()
-
-
 def _write_dataset(
     data: PushTZarr, out_dir: Path, repo_id: str, variant: str, episodes: list[int], with_images: bool
 ) -> None:
@@ -341,7 +329,7 @@ def _write_dataset(
     geometry = BlockGeometry()
     desc = f"Push-T {variant} -> {out_dir.name}"
     progress = tqdm(total=sum(map(data.length, episodes)), unit="frame", desc=desc)
-    with progress, _without_datasets_progress_bars():
+    with progress, without_datasets_progress_bars():
         for episode in episodes:
             columns = episode_columns(data, episode, geometry, variant, with_images)
             for t in range(len(columns["action"])):

@@ -1,6 +1,7 @@
 """Shared test fixtures. The rootdir conftest keeps tests importable without a `tests` package
 (site-packages already has one, from draccus)."""
 
+import logging
 import os
 from pathlib import Path
 
@@ -24,3 +25,14 @@ def pusht_zarr() -> Path:
         pytest.skip("real Push-T zarr not found: set SDP_PUSHT_ZARR or put it at ../shared/data/pusht/")
     return path
 
+
+
+@pytest.fixture(autouse=True)
+def _restore_root_logging():
+    """CLIs run in-process (`init_logging`, `basicConfig`) attach handlers to the sys.stderr that pytest
+    swaps per test; left in place they write to a closed stream in later tests. Undo them after each test."""
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    yield
+    root.handlers[:] = handlers
+    root.setLevel(level)

@@ -11,11 +11,7 @@ from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 
-from .tasks import CONTROL_FREQ, get_task
-
-# robomimic's two observation settings: "low_dim" = proprioception + object state,
-# "image" = proprioception + camera images (robomimic's image datasets carry no object state).
-OBS_TYPES = ("low_dim", "image")
+from .tasks import CONTROL_FREQ, OBS_TYPES, get_task
 
 
 @EnvConfig.register_subclass("robomimic")

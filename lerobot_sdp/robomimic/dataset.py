@@ -12,7 +12,7 @@ import numpy as np
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 
-from .tasks import CONTROL_FREQ, TaskSpec
+from .tasks import CONTROL_FREQ, OBS_TYPES, TaskSpec
 
 REWARD = "next.reward"
 DONE = "next.done"
@@ -36,7 +36,7 @@ def dataset_features(spec: TaskSpec, obs_type: str, cameras: list[str], image_si
                 "names": ["height", "width", "channel"],
             }
     else:
-        raise ValueError(f"Unknown obs_type {obs_type!r}: use 'low_dim' or 'image'.")
+        raise ValueError(f"Unknown obs_type {obs_type!r}: use one of {list(OBS_TYPES)}.")
     return features
 
 
@@ -61,7 +61,12 @@ def create_dataset(repo_id: str, root: Path, features: dict, overwrite: bool) ->
     root = Path(root)
     if root.exists():
         if not overwrite:
-            raise FileExistsError(f"{root} already exists: pass --overwrite to replace it, or pick another directory.")
+            raise FileExistsError(
+                f"{root} already exists: pass --overwrite to replace it, or pick another directory."
+            )
+        # --overwrite deletes a directory tree: only ever one that holds a LeRobot dataset (or nothing).
+        if any(root.iterdir()) and not (root / "meta" / "info.json").is_file():
+            raise FileExistsError(f"{root} is not empty and holds no LeRobot dataset: refusing to delete it.")
         shutil.rmtree(root)
     return LeRobotDataset.create(
         repo_id=repo_id, fps=CONTROL_FREQ, features=features, root=root, robot_type="panda", use_videos=False

@@ -9,13 +9,14 @@ An episode terminates on the task's own `_check_success()` and is truncated at `
 
 import logging
 from functools import partial
+from typing import ClassVar
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 from lerobot.envs.utils import freeze_after_episode_end
 
-from .tasks import CONTROL_FREQ, get_task
+from .tasks import CONTROL_FREQ, OBS_TYPES, get_task
 
 try:
     import robosuite
@@ -44,7 +45,7 @@ def controller_config() -> dict:
 class RobomimicEnv(gym.Env):
     """One robomimic task in robosuite (Panda, OSC_POSE, 20 Hz, sparse reward)."""
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": CONTROL_FREQ}
+    metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": CONTROL_FREQ}
 
     def __init__(
         self,
@@ -57,6 +58,8 @@ class RobomimicEnv(gym.Env):
         render_size: int = 256,
     ):
         super().__init__()
+        if obs_type not in OBS_TYPES:
+            raise ValueError(f"Unknown obs_type {obs_type!r}: use one of {list(OBS_TYPES)}.")
         self.task_spec = get_task(task)
         self.task = task
         self.task_description = self.task_spec.description
@@ -70,7 +73,7 @@ class RobomimicEnv(gym.Env):
         self.render_size = render_size
         use_images = obs_type == "image"
         self._env = robosuite.make(
-            self.task_spec.robosuite_env,
+            self.task_spec.name,
             robots=["Panda"] * self.task_spec.n_arms,
             env_configuration=self.task_spec.env_configuration,
             controller_configs=controller_config(),
@@ -86,7 +89,7 @@ class RobomimicEnv(gym.Env):
             has_renderer=False,
             # Low-dim envs open no GL context at all until render() asks for a video frame.
             has_offscreen_renderer=use_images,
-            # A soft reset re-samples object placements without recompiling the MuJoCo model (~10x faster).
+            # Soft resets re-sample object placements without recompiling the MuJoCo model each episode.
             hard_reset=False,
         )
         self.observation_space = self._observation_space()
@@ -100,11 +103,11 @@ class RobomimicEnv(gym.Env):
         space = {"agent_pos": spaces.Box(-np.inf, np.inf, (self.task_spec.state_dim,), np.float32)}
         if self.obs_type == "low_dim":
             space["environment_state"] = spaces.Box(-np.inf, np.inf, (self.task_spec.object_dim,), np.float32)
-        elif self.obs_type == "image":
-            shape = (self.image_size, self.image_size, 3)
-            space["pixels"] = spaces.Dict({cam: spaces.Box(0, 255, shape, np.uint8) for cam in self.camera_names})
         else:
-            raise ValueError(f"Unknown obs_type {self.obs_type!r}: use 'low_dim' or 'image'.")
+            shape = (self.image_size, self.image_size, 3)
+            space["pixels"] = spaces.Dict(
+                {cam: spaces.Box(0, 255, shape, np.uint8) for cam in self.camera_names}
+            )
         return spaces.Dict(space)
 
     @property
@@ -116,12 +119,16 @@ class RobomimicEnv(gym.Env):
 
     def _observation(self) -> dict:
         raw = self._raw_obs
-        obs = {"agent_pos": np.concatenate([raw[key] for key in self.task_spec.state_keys]).astype(np.float32)}
+        obs = {
+            "agent_pos": np.concatenate([raw[key] for key in self.task_spec.state_keys]).astype(np.float32)
+        }
         if self.obs_type == "low_dim":
             obs["environment_state"] = raw["object-state"].astype(np.float32)
         else:
             # robosuite renders OpenGL-style (bottom row first); robomimic stores images upright.
-            obs["pixels"] = {cam: np.ascontiguousarray(raw[f"{cam}_image"][::-1]) for cam in self.camera_names}
+            obs["pixels"] = {
+                cam: np.ascontiguousarray(raw[f"{cam}_image"][::-1]) for cam in self.camera_names
+            }
         return obs
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -163,7 +170,7 @@ class RobomimicEnv(gym.Env):
             return False
         try:
             MjRenderContextOffscreen(sim, device_id=-1)  # registers itself on `sim`
-        except Exception as err:  # GL backends fail with many exception types
+        except Exception as err:  # noqa: BLE001  (GL backends fail with many exception types)
             self._render_failed = True
             logger.warning(
                 "Offscreen rendering is unavailable (%s): video frames will be black, metrics are unaffected. "

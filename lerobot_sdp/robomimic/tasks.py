@@ -12,20 +12,23 @@ ARM_STATE_KEYS: tuple[tuple[str, int], ...] = (("eef_pos", 3), ("eef_quat", 4), 
 # OSC_POSE delta (3 position + 3 axis-angle) plus one gripper command, per arm.
 ARM_ACTION_DIM = 7
 CONTROL_FREQ = 20
+# robomimic's two observation settings: "low_dim" = proprioception + object state,
+# "image" = proprioception + camera images (robomimic's image datasets carry no object state).
+OBS_TYPES = ("low_dim", "image")
 
 
 @dataclass(frozen=True)
 class TaskSpec:
     """One robomimic task: how to build it in robosuite and what its observations look like."""
 
-    name: str  # the `--env.task` value (robomimic's env_name)
-    robosuite_env: str  # the robosuite environment class name
-    n_arms: int
+    name: str  # the `--env.task` value: robomimic's env_name, which is robosuite's environment class
     object_dim: int  # size of robosuite's "object-state" (robomimic's "object" key)
-    episode_length: int  # robomimic's evaluation horizon
-    cameras: tuple[str, ...]  # robomimic's image-dataset cameras
-    image_size: int  # robomimic's image-dataset resolution (square)
     description: str  # the LeRobot task string, shared by the env and recorded datasets
+    # The defaults are the single-arm tasks' (Lift, Can, Square) settings.
+    n_arms: int = 1
+    episode_length: int = 400  # robomimic's evaluation horizon
+    cameras: tuple[str, ...] = ("agentview", "robot0_eye_in_hand")  # robomimic's image-dataset cameras
+    image_size: int = 84  # robomimic's image-dataset resolution (square)
     env_configuration: str = "default"
 
     @property
@@ -45,7 +48,10 @@ class TaskSpec:
     def state_names(self) -> list[str]:
         """One name per `observation.state` entry (LeRobot feature `names`)."""
         return [
-            f"robot{arm}_{key}_{i}" for arm in range(self.n_arms) for key, size in ARM_STATE_KEYS for i in range(size)
+            f"robot{arm}_{key}_{i}"
+            for arm in range(self.n_arms)
+            for key, size in ARM_STATE_KEYS
+            for i in range(size)
         ]
 
     @property
@@ -54,27 +60,30 @@ class TaskSpec:
         return [f"robot{arm}_{part}" for arm in range(self.n_arms) for part in parts]
 
 
-_SINGLE_ARM_CAMERAS = ("agentview", "robot0_eye_in_hand")
-
-TASKS: dict[str, TaskSpec] = {
-    spec.name: spec
-    for spec in (
-        TaskSpec("Lift", "Lift", 1, 10, 400, _SINGLE_ARM_CAMERAS, 84, "lift the cube"),
-        TaskSpec("PickPlaceCan", "PickPlaceCan", 1, 14, 400, _SINGLE_ARM_CAMERAS, 84, "place the can in its bin"),
-        TaskSpec(
-            "NutAssemblySquare", "NutAssemblySquare", 1, 14, 400, _SINGLE_ARM_CAMERAS, 84,
-            "fit the square nut onto the square peg",
-        ),
-        TaskSpec(
-            "TwoArmTransport", "TwoArmTransport", 2, 41, 700,
-            ("shouldercamera0", "shouldercamera1", "robot0_eye_in_hand", "robot1_eye_in_hand"), 84,
-            "transport the hammer to the other bin",
-            # robomimic's "single-arm-opposed": the two Pandas face each other across the table.
-            env_configuration="opposed",
-        ),
-        TaskSpec("ToolHang", "ToolHang", 1, 44, 700, ("sideview", "robot0_eye_in_hand"), 240, "hang the tool on the frame"),
-    )
-}
+_TASK_SPECS = (
+    TaskSpec("Lift", object_dim=10, description="lift the cube"),
+    TaskSpec("PickPlaceCan", object_dim=14, description="place the can in its bin"),
+    TaskSpec("NutAssemblySquare", object_dim=14, description="fit the square nut onto the square peg"),
+    TaskSpec(
+        "TwoArmTransport",
+        object_dim=41,
+        description="transport the hammer to the other bin",
+        n_arms=2,
+        episode_length=700,
+        cameras=("shouldercamera0", "shouldercamera1", "robot0_eye_in_hand", "robot1_eye_in_hand"),
+        # robomimic's "single-arm-opposed": the two Pandas face each other across the table.
+        env_configuration="opposed",
+    ),
+    TaskSpec(
+        "ToolHang",
+        object_dim=44,
+        description="hang the tool on the frame",
+        episode_length=700,
+        cameras=("sideview", "robot0_eye_in_hand"),
+        image_size=240,
+    ),
+)
+TASKS: dict[str, TaskSpec] = {spec.name: spec for spec in _TASK_SPECS}
 
 
 def get_task(name: str) -> TaskSpec:
