@@ -89,6 +89,14 @@ def test_denoise_primer_is_reported_apart(tmp_path):
     assert case["sdp"]["denoiser_calls_per_chunk"] == 2
 
 
+def test_an_existing_report_is_kept_without_overwrite(tmp_path):
+    (tmp_path / "latency.json").write_text("{}")
+    with pytest.raises(SystemExit, match="pass --overwrite"):
+        run_bench(tmp_path, "--samplers", "DDIM4", "--n_chunks", "1")
+    assert (tmp_path / "latency.json").read_text() == "{}"
+    assert run_bench(tmp_path, "--samplers", "DDIM4", "--n_chunks", "1", "--overwrite")["results"]
+
+
 def test_dp_gets_the_same_denoiser_and_horizon_as_sdp():
     args = cli.build_parser().parse_args(["latency", "--quick"])
     latency.resolve_defaults(args)

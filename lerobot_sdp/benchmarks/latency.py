@@ -577,6 +577,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     devices = ["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"]
     add = parser.add_argument
     add("--output_dir", type=Path, default=Path("outputs/benchmarks/latency"))
+    add("--overwrite", action="store_true", help=f"replace an existing {JSON_NAME} in --output_dir")
     add(
         "--obs",
         choices=sorted(OBSERVATIONS),
@@ -622,6 +623,10 @@ def resolve_defaults(args: argparse.Namespace) -> None:
         raise SystemExit("--steps, --n_chunks and --batch_sizes must be >= 1 and --warmup_chunks >= 0.")
     if "cuda" in args.device and not torch.cuda.is_available():
         raise SystemExit("--device cuda was asked for but no CUDA GPU is available.")
+    if (args.output_dir / JSON_NAME).exists() and not args.overwrite:
+        raise SystemExit(
+            f"{args.output_dir / JSON_NAME} exists: pass --overwrite to replace it, or another --output_dir."
+        )
 
 
 @contextmanager
