@@ -106,10 +106,13 @@ def record(
     seed: int = DEFAULT_SEED,
     max_attempts: int | None = None,
     overwrite: bool = False,
+    hold_steps: int = 0,
 ) -> dict:
     """Record `num_episodes` successful demonstrations; returns attempts, successes and success rate."""
     if num_episodes < 1:
         raise ValueError(f"--num_episodes must be at least 1, got {num_episodes}.")
+    if hold_steps < 0:
+        raise ValueError(f"--hold_steps must be 0 or more, got {hold_steps}.")
     max_attempts = max_attempts or 2 * num_episodes + 10
     spec = get_task("Lift")
     env = RobomimicEnv("Lift", obs_type=obs_type)
@@ -122,7 +125,7 @@ def record(
     with without_datasets_progress_bars():
         try:
             while successes < num_episodes and attempts < max_attempts:
-                frames = _run_episode(env, demonstrator, seed + attempts, spec.description)
+                frames = _run_episode(env, demonstrator, seed + attempts, spec.description, hold_steps)
                 attempts += 1
                 if frames is not None:
                     for frame in frames:
@@ -151,17 +154,24 @@ def record(
 
 
 def _run_episode(
-    env: RobomimicEnv, demonstrator: LiftDemonstrator, seed: int, task: str
+    env: RobomimicEnv, demonstrator: LiftDemonstrator, seed: int, task: str, hold_steps: int = 0
 ) -> list[dict] | None:
-    """One demonstration as LeRobot frames, or None if the cube was not lifted in time."""
+    """One demonstration as LeRobot frames, or None if the cube was not lifted in time.
+
+    The episode ends `hold_steps` steps after the first success (or at the horizon), the demonstrator
+    still lifting: with `hold_steps=0` a demonstration holds only the few frames of lift before the
+    task's 4 cm threshold, while reaching and descending fill the rest."""
     obs, _ = env.reset(seed=seed)
     demonstrator.reset()
-    frames = []
+    frames, success_at = [], None
     while True:
         action = demonstrator.act(env.raw_observation)
         next_obs, reward, success, truncated, _ = env.step(action)
-        frames.append(make_frame(obs, action, reward, success, task))
-        if success:
+        if success and success_at is None:
+            success_at = len(frames)
+        ended = success_at is not None and (len(frames) - success_at >= hold_steps or truncated)
+        frames.append(make_frame(obs, action, reward, ended, task))
+        if ended:
             return frames
         if truncated:
             return None
@@ -177,6 +187,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--repo_id", default="local/scripted_lift", help="dataset id (--dataset.repo_id)")
     parser.add_argument("--obs_type", choices=("low_dim", "image"), default="low_dim")
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED, help="episode i uses seed + i")
+    parser.add_argument(
+        "--hold_steps", type=int, default=0, help="keep recording this many steps after success, still lifting"
+    )
     parser.add_argument("--max_attempts", type=int, default=None, help="give up after this many (2N+10)")
     parser.add_argument(
         "--overwrite", action="store_true", help="replace an existing dataset at --output_dir"
@@ -190,6 +203,7 @@ def main(argv: list[str] | None = None) -> None:
         args.seed,
         args.max_attempts,
         args.overwrite,
+        args.hold_steps,
     )
     print(
         f"Scripted Lift: {stats['successes']}/{stats['attempts']} attempts succeeded "
