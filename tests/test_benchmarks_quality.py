@@ -5,7 +5,14 @@ import json
 from sdp_test_utils import make_tiny_pusht_dataset
 
 from lerobot_sdp.benchmarks import cli
-from lerobot_sdp.benchmarks.quality import BUDGETS, PAPER_SCHEMES, ablation_runs, comparison_runs, markdown
+from lerobot_sdp.benchmarks.quality import (
+    BUDGETS,
+    PAPER_SCHEMES,
+    ablation_runs,
+    comparison_runs,
+    markdown,
+    resolve_budget,
+)
 
 
 def test_tiny_comparison_runs_resumes_and_reports(tmp_path, capsys):
@@ -53,3 +60,11 @@ def test_markdown_puts_the_papers_numbers_beside_ours():
            "train_wall_s": 1.0, "steps": 2, "n_episodes": 2}
     text = markdown({"dp": row, "scheme_linear": row}, "tiny", BUDGETS["tiny"])
     assert "| scheme_linear | 0.500 | 10.0 | 0.36 |" in text and "| dp | 0.500 |" in text
+
+
+def test_steps_flag_is_a_labelled_reduced_budget():
+    parser = cli.build_parser()
+    name, budget = resolve_budget(parser.parse_args(["quality", "--budget", "cpu", "--steps", "3000"]))
+    assert name == "cpu_3000steps" and budget.steps == budget.ablation_steps == 3000
+    assert budget.batch_size == BUDGETS["cpu"].batch_size  # everything else stays the budget's
+    assert resolve_budget(parser.parse_args(["quality", "--budget", "cpu"])) == ("cpu", BUDGETS["cpu"])

@@ -12,7 +12,7 @@ Results: OUTPUT_DIR/results.json and OUTPUT_DIR/results.md.
 import argparse
 import json
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 from ..lerobot_cli import evaluate, pusht_eval_args, train, trained_steps
@@ -178,11 +178,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dataset_root", type=Path, default=None)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--status", action="store_true", help="print where each run stands and exit")
+    parser.add_argument("--steps", type=int, default=None,
+                        help="train every run this many steps instead of the budget's (a reduced budget, labelled so)")
+
+
+def resolve_budget(args: argparse.Namespace) -> tuple[str, Budget]:
+    """The budget's name and settings, with --steps applied to every run (comparison and ablations)."""
+    budget = BUDGETS[args.budget]
+    if args.steps is None:
+        return args.budget, budget
+    if args.steps < 1:
+        raise SystemExit(f"--steps must be at least 1, got {args.steps}.")
+    return f"{args.budget}_{args.steps}steps", replace(budget, steps=args.steps, ablation_steps=args.steps)
 
 
 def run(args: argparse.Namespace) -> dict:
-    budget = BUDGETS[args.budget]
-    output_dir = args.output_dir or Path(f"outputs/quality_{args.budget}")
+    budget_name, budget = resolve_budget(args)
+    output_dir = args.output_dir or Path(f"outputs/quality_{budget_name}")
     runs = {"comparison": comparison_runs, "ablations": ablation_runs}
     selected = [r for kind in (runs if args.runs == "all" else [args.runs]) for r in runs[kind](budget, args.device)]
     print("\n".join(status(selected, output_dir)), flush=True)
@@ -198,9 +210,9 @@ def run(args: argparse.Namespace) -> dict:
     rows = json.loads(results_file.read_text())["rows"] if results_file.exists() else {}
     for r in selected:
         rows[r.name] = execute(r, output_dir, data_args, common, budget, args.device)
-        report = {"budget": args.budget, "settings": asdict(budget), "eval_seed": EVAL_SEED, "rows": rows}
+        report = {"budget": budget_name, "settings": asdict(budget), "eval_seed": EVAL_SEED, "rows": rows}
         results_file.write_text(json.dumps(report, indent=2))
-        (output_dir / "results.md").write_text(markdown(rows, args.budget, budget))
+        (output_dir / "results.md").write_text(markdown(rows, budget_name, budget))
         print("\n".join(status(selected, output_dir)), flush=True)
     print((output_dir / "results.md").read_text())
     return report
