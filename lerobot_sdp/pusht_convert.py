@@ -32,7 +32,7 @@ import zarr
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from tqdm import tqdm
 
-from .progress import without_datasets_progress_bars
+from .dataset_writing import clear_output_dir, without_datasets_progress_bars
 
 with warnings.catch_warnings():
     # pygame, imported by gym-pusht, warns that pkg_resources is deprecated: noise for our users.
@@ -257,21 +257,6 @@ def episode_columns(
     return columns
 
 
-def _prepare_out_dir(out_dir: Path, overwrite: bool) -> None:
-    """Refuse an existing `out_dir` unless `overwrite`; LeRobotDataset.create needs it absent."""
-    if not out_dir.exists():
-        return
-    if not overwrite:
-        raise ConversionError(f"{out_dir} already exists; pass --overwrite to replace it")
-    # Only ever delete what this tool could have written: a LeRobot dataset or an empty directory.
-    is_dataset = (out_dir / "meta" / "info.json").exists()
-    if not out_dir.is_dir() or not (is_dataset or not any(out_dir.iterdir())):
-        raise ConversionError(
-            f"{out_dir} is not a LeRobot dataset, so --overwrite will not delete it; pick another OUT_DIR"
-        )
-    shutil.rmtree(out_dir)
-
-
 def convert_pusht(
     zarr_path: str | Path,
     out_dir: str | Path,
@@ -303,7 +288,10 @@ def convert_pusht(
     elif isinstance(episodes, str):
         episodes = parse_episodes(episodes, data.num_episodes)
     episodes = check_episodes(episodes, data.num_episodes)
-    _prepare_out_dir(out_dir, overwrite)
+    try:
+        clear_output_dir(out_dir, overwrite)
+    except FileExistsError as err:
+        raise ConversionError(str(err)) from None
     try:
         _write_dataset(data, out_dir, repo_id, variant, episodes, with_images)
         if verify:

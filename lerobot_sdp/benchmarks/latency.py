@@ -623,10 +623,6 @@ def resolve_defaults(args: argparse.Namespace) -> None:
         raise SystemExit("--steps, --n_chunks and --batch_sizes must be >= 1 and --warmup_chunks >= 0.")
     if "cuda" in args.device and not torch.cuda.is_available():
         raise SystemExit("--device cuda was asked for but no CUDA GPU is available.")
-    if (args.output_dir / JSON_NAME).exists() and not args.overwrite:
-        raise SystemExit(
-            f"{args.output_dir / JSON_NAME} exists: pass --overwrite to replace it, or another --output_dir."
-        )
 
 
 @contextmanager
@@ -645,6 +641,10 @@ def cpu_threads(n: int | None) -> Iterator[None]:
 def run(args: argparse.Namespace) -> dict:
     """Run the sweep, write latency.json and latency_h_sweep.png under --output_dir, print a table."""
     resolve_defaults(args)
+    if (args.output_dir / JSON_NAME).exists() and not args.overwrite:
+        raise SystemExit(
+            f"{args.output_dir / JSON_NAME} exists: pass --overwrite to replace it, or another --output_dir."
+        )
     args.output_dir.mkdir(parents=True, exist_ok=True)
     with cpu_threads(args.num_threads):
         report = {

@@ -11,7 +11,7 @@ from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 
-from .tasks import CONTROL_FREQ, OBS_TYPES, get_task
+from .tasks import CONTROL_FREQ, check_obs_type, get_task
 
 
 @EnvConfig.register_subclass("robomimic")
@@ -37,8 +37,7 @@ class RobomimicEnvConfig(EnvConfig):
 
     def __post_init__(self):
         spec = get_task(self.task)
-        if self.obs_type not in OBS_TYPES:
-            raise ValueError(f"Unknown robomimic obs_type {self.obs_type!r}: use one of {list(OBS_TYPES)}.")
+        check_obs_type(self.obs_type)
         if self.fps != CONTROL_FREQ:
             raise ValueError(
                 f"robomimic's controllers run at {CONTROL_FREQ} Hz, got fps={self.fps}: leave `--env.fps` unset."

@@ -12,12 +12,13 @@ from pathlib import Path
 import numpy as np
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
+from lerobot.utils.utils import init_logging
 from tqdm import tqdm
 
-from ..progress import without_datasets_progress_bars
+from ..dataset_writing import without_datasets_progress_bars
 from .dataset import DONE, REWARD, create_dataset, dataset_features, make_frame
 from .hdf5 import Demo, demo_names, open_robomimic, read_demo, task_of
-from .tasks import TaskSpec
+from .tasks import OBS_TYPES, TaskSpec
 
 logger = logging.getLogger(__name__)
 
@@ -55,6 +56,7 @@ def convert(
         # Raw column values (numpy, decoded images), not LeRobot's torch transform (float CHW images).
         table = converted.hf_dataset.with_format("numpy")
         starts = np.cumsum([0, *lengths[:-1]])
+        # Read each demo from the file again rather than keep them all: image demos run to gigabytes.
         for episode, name in enumerate(tqdm(names, desc="Verifying", unit="demo")):
             demo = read_demo(f, name, spec, obs_type, cameras)
             _verify_episode(table, demo, episode, int(starts[episode]))
@@ -131,7 +133,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--repo_id", default=None, help="dataset id (--dataset.repo_id); default local/<file stem>"
     )
-    parser.add_argument("--obs_type", choices=("low_dim", "image"), default="low_dim")
+    parser.add_argument("--obs_type", choices=OBS_TYPES, default="low_dim")
     parser.add_argument("--task", default=None, help="override the task named in the file's env_args")
     parser.add_argument(
         "--camera_names", default=None, help="comma-separated cameras (image); default the task's"
@@ -141,7 +143,7 @@ def main(argv: list[str] | None = None) -> None:
         "--overwrite", action="store_true", help="replace an existing dataset at --output_dir"
     )
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO)
+    init_logging()
     cameras = [c.strip() for c in args.camera_names.split(",") if c.strip()] if args.camera_names else None
     dataset = convert(
         args.hdf5,

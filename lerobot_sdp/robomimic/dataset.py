@@ -5,14 +5,14 @@ policy trained on these datasets runs in the env without a rename map. Images ar
 (PNG, not video) so converted values can be checked for equality.
 """
 
-import shutil
 from pathlib import Path
 
 import numpy as np
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 
-from .tasks import CONTROL_FREQ, OBS_TYPES, TaskSpec
+from ..dataset_writing import clear_output_dir
+from .tasks import CONTROL_FREQ, TaskSpec, check_obs_type
 
 REWARD = "next.reward"
 DONE = "next.done"
@@ -26,17 +26,16 @@ def dataset_features(spec: TaskSpec, obs_type: str, cameras: list[str], image_si
         REWARD: {"dtype": "float32", "shape": (1,), "names": None},
         DONE: {"dtype": "bool", "shape": (1,), "names": None},
     }
+    check_obs_type(obs_type)
     if obs_type == "low_dim":
         features[OBS_ENV_STATE] = {"dtype": "float32", "shape": (spec.object_dim,), "names": None}
-    elif obs_type == "image":
+    else:
         for cam in cameras:
             features[f"{OBS_IMAGES}.{cam}"] = {
                 "dtype": "image",
                 "shape": (image_size, image_size, 3),
                 "names": ["height", "width", "channel"],
             }
-    else:
-        raise ValueError(f"Unknown obs_type {obs_type!r}: use one of {list(OBS_TYPES)}.")
     return features
 
 
@@ -58,16 +57,7 @@ def make_frame(obs: dict, action: np.ndarray, reward: float, done: bool, task: s
 
 def create_dataset(repo_id: str, root: Path, features: dict, overwrite: bool) -> LeRobotDataset:
     """An empty local dataset at `root`, refusing to replace an existing one unless `overwrite`."""
-    root = Path(root)
-    if root.exists():
-        if not overwrite:
-            raise FileExistsError(
-                f"{root} already exists: pass --overwrite to replace it, or pick another directory."
-            )
-        # --overwrite deletes a directory tree: only ever one that holds a LeRobot dataset (or nothing).
-        if any(root.iterdir()) and not (root / "meta" / "info.json").is_file():
-            raise FileExistsError(f"{root} is not empty and holds no LeRobot dataset: refusing to delete it.")
-        shutil.rmtree(root)
+    clear_output_dir(root, overwrite)
     return LeRobotDataset.create(
         repo_id=repo_id, fps=CONTROL_FREQ, features=features, root=root, robot_type="panda", use_videos=False
     )

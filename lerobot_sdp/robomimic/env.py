@@ -16,7 +16,7 @@ import numpy as np
 from gymnasium import spaces
 from lerobot.envs.utils import freeze_after_episode_end
 
-from .tasks import CONTROL_FREQ, OBS_TYPES, get_task
+from .tasks import CONTROL_FREQ, check_obs_type, get_task
 
 try:
     import robosuite
@@ -58,8 +58,7 @@ class RobomimicEnv(gym.Env):
         render_size: int = 256,
     ):
         super().__init__()
-        if obs_type not in OBS_TYPES:
-            raise ValueError(f"Unknown obs_type {obs_type!r}: use one of {list(OBS_TYPES)}.")
+        check_obs_type(obs_type)
         self.task_spec = get_task(task)
         self.task = task
         self.task_description = self.task_spec.description

@@ -106,9 +106,9 @@ def read_demo(f: h5py.File, name: str, spec: TaskSpec, obs_type: str, cameras: l
 
 
 def _check_shapes(demo: Demo, spec: TaskSpec) -> None:
-    arrays = {"actions": demo.actions, "rewards": demo.rewards, "dones": demo.dones, **demo.obs}
-    arrays.update({f"{cam}_image": image for cam, image in demo.obs.get("pixels", {}).items()})
-    arrays.pop("pixels", None)
+    arrays = {"actions": demo.actions, "rewards": demo.rewards, "dones": demo.dones}
+    arrays |= {key: value for key, value in demo.obs.items() if key != "pixels"}
+    arrays |= {f"{cam}_image": image for cam, image in demo.obs.get("pixels", {}).items()}
     lengths = {key: len(value) for key, value in arrays.items()}
     if len(set(lengths.values())) != 1:
         raise ValueError(f"{demo.name}: arrays disagree on the episode length: {lengths}.")

@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ..progress import without_datasets_progress_bars
+from ..dataset_writing import without_datasets_progress_bars
 from .dataset import create_dataset, dataset_features, make_frame
 from .env import RobomimicEnv
-from .tasks import get_task
+from .tasks import OBS_TYPES, get_task
 
 # OSC_POSE maps an action of 1 to a 5 cm goal displacement (robosuite's output_max).
 METERS_PER_ACTION = 0.05
@@ -122,23 +122,23 @@ def record(
     demonstrator = LiftDemonstrator(np.random.default_rng(seed))
     successes, attempts, lengths = 0, 0, []
     progress = tqdm(total=num_episodes, desc="Recording scripted Lift", unit="demo")
-    with without_datasets_progress_bars():
-        try:
+    try:
+        with progress, without_datasets_progress_bars():
             while successes < num_episodes and attempts < max_attempts:
                 frames = _run_episode(env, demonstrator, seed + attempts, spec.description, hold_steps)
                 attempts += 1
-                if frames is not None:
-                    for frame in frames:
-                        dataset.add_frame(frame)
-                    dataset.save_episode()
-                    successes += 1
-                    lengths.append(len(frames))
-                    progress.update()
                 progress.set_postfix(attempts=attempts)
-        finally:
-            progress.close()
-            dataset.finalize()
-            env.close()
+                if frames is None:
+                    continue
+                for frame in frames:
+                    dataset.add_frame(frame)
+                dataset.save_episode()
+                successes += 1
+                lengths.append(len(frames))
+                progress.update()
+    finally:
+        dataset.finalize()
+        env.close()
     stats = {
         "attempts": attempts,
         "successes": successes,
@@ -185,7 +185,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--num_episodes", type=int, required=True, help="successful demonstrations to keep")
     parser.add_argument("--output_dir", type=Path, required=True, help="dataset root (--dataset.root)")
     parser.add_argument("--repo_id", default="local/scripted_lift", help="dataset id (--dataset.repo_id)")
-    parser.add_argument("--obs_type", choices=("low_dim", "image"), default="low_dim")
+    parser.add_argument("--obs_type", choices=OBS_TYPES, default="low_dim")
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED, help="episode i uses seed + i")
     parser.add_argument(
         "--hold_steps", type=int, default=0, help="keep recording this many steps after success, still lifting"

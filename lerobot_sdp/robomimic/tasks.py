@@ -17,6 +17,11 @@ CONTROL_FREQ = 20
 OBS_TYPES = ("low_dim", "image")
 
 
+def check_obs_type(obs_type: str) -> None:
+    if obs_type not in OBS_TYPES:
+        raise ValueError(f"Unknown robomimic obs_type {obs_type!r}: use one of {list(OBS_TYPES)}.")
+
+
 @dataclass(frozen=True)
 class TaskSpec:
     """One robomimic task: how to build it in robosuite and what its observations look like."""
