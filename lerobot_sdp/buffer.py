@@ -81,6 +81,8 @@ class StreamingBuffer:
         kept = sample[:, g.chunk_len : g.n_past + g.n_future]  # past slots, then chunks 1..h-1
         past, rest = kept[:, : g.n_past], kept[:, g.n_past :]
         # re-noise the executed actions now in the past slots to chunk 0's start level
-        past = start.sqrt_abar[: g.n_past] * past + start.sqrt_one_minus_abar[: g.n_past] * torch.randn_like(past)
+        past = start.sqrt_abar[: g.n_past] * past + start.sqrt_one_minus_abar[: g.n_past] * torch.randn_like(
+            past
+        )
         tail = torch.randn_like(sample[:, : g.chunk_len + g.n_pad])  # new last chunk + padding, level N
         return torch.cat([past, rest, tail], dim=1)

@@ -140,7 +140,11 @@ class SDPConfig(PreTrainedConfig):
         geometry = self.geometry  # validates the sizes
         logging.info(
             "SDP geometry: horizon=%d (%d past + %d chunks x %d + %d padding), %d denoiser calls per chunk.",
-            geometry.horizon, geometry.n_past, geometry.n_chunks, geometry.chunk_len, geometry.n_pad,
+            geometry.horizon,
+            geometry.n_past,
+            geometry.n_chunks,
+            geometry.chunk_len,
+            geometry.n_pad,
             geometry.steps_per_call,
         )
 
@@ -207,7 +211,8 @@ class SDPConfig(PreTrainedConfig):
             raise ValueError(
                 f"action_primer='constant' repeats the current state as the first actions, but "
                 f"observation.state has shape {tuple(self.robot_state_feature.shape)} and action "
-                f"{tuple(self.action_feature.shape)}: they are not one space. Use `--policy.action_primer=zero`."
+                f"{tuple(self.action_feature.shape)}: they are not one space. "
+                "Use `--policy.action_primer=zero`."
             )
 
     @property

@@ -18,11 +18,14 @@ def clear_output_dir(out_dir: Path, overwrite: bool) -> None:
     if not out_dir.exists():
         return
     if not overwrite:
-        raise FileExistsError(f"{out_dir} already exists; pass --overwrite to replace it, or pick another directory")
+        raise FileExistsError(
+            f"{out_dir} already exists; pass --overwrite to replace it, or pick another directory"
+        )
     is_dataset = (out_dir / "meta" / "info.json").is_file()
     if not out_dir.is_dir() or not (is_dataset or not any(out_dir.iterdir())):
         raise FileExistsError(
-            f"{out_dir} is not a LeRobot dataset: refusing to delete it with --overwrite; pick another directory"
+            f"{out_dir} is not a LeRobot dataset: refusing to delete it with --overwrite; "
+            "pick another directory"
         )
     shutil.rmtree(out_dir)
 

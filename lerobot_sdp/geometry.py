@@ -30,7 +30,8 @@ class ChunkGeometry:
                 raise ValueError(f"`{field}` must be positive, got {getattr(self, name)}.")
         if self.num_inference_steps % self.n_chunks != 0:
             raise ValueError(
-                f"num_inference_steps={self.num_inference_steps} is not divisible by n_chunks={self.n_chunks}: "
+                f"num_inference_steps={self.num_inference_steps} is not divisible by "
+                f"n_chunks={self.n_chunks}: "
                 "chunk noise levels would drift from call to call. Change `num_inference_steps` "
                 f"(e.g. to {self.n_chunks * max(1, round(self.num_inference_steps / self.n_chunks))}) "
                 "or `n_chunks`."

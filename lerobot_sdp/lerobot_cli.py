@@ -24,7 +24,10 @@ def run_logged(cmd: list[str], log: Path, echo: bool = True) -> None:
     """Run a command, echoing its output and appending it to `log`."""
     log.parent.mkdir(parents=True, exist_ok=True)
     print(f"[run] {' '.join(cmd)}\n[log] {log}", flush=True)
-    with log.open("a") as f, subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) as proc:
+    with (
+        log.open("a") as f,
+        subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) as proc,
+    ):
         for line in proc.stdout:
             if echo:
                 sys.stdout.write(line)
@@ -53,7 +56,11 @@ def train(train_dir: Path, args: list[str], steps: int, log: Path) -> Path:
         return model_dir
     if done > 0:
         print(f"[train] {train_dir}: resuming at step {done}/{steps}", flush=True)
-        cmd = [lerobot_bin("lerobot-train"), f"--config_path={model_dir / 'train_config.json'}", "--resume=true"]
+        cmd = [
+            lerobot_bin("lerobot-train"),
+            f"--config_path={model_dir / 'train_config.json'}",
+            "--resume=true",
+        ]
     elif train_dir.exists():
         raise CLIError(f"{train_dir} exists but holds no checkpoint: move it away or delete it, then rerun.")
     else:
@@ -72,11 +79,17 @@ def evaluate(model_dir: Path, eval_dir: Path, args: list[str], log: Path) -> dic
     return json.loads(info.read_text())["overall"]
 
 
-def pusht_eval_args(obs_type: str, n_episodes: int, seed: int, device: str, episode_length: int | None = None) -> list[str]:
+def pusht_eval_args(
+    obs_type: str, n_episodes: int, seed: int, device: str, episode_length: int | None = None
+) -> list[str]:
     """Push-T evaluation on batched sync envs (async Push-T envs are broken in lerobot 0.6.1)."""
     args = [
-        "--env.type=pusht", f"--env.obs_type={obs_type}", f"--eval.n_episodes={n_episodes}",
-        f"--eval.batch_size={min(n_episodes, 50)}", "--eval.use_async_envs=false",
-        f"--policy.device={device}", f"--seed={seed}",
+        "--env.type=pusht",
+        f"--env.obs_type={obs_type}",
+        f"--eval.n_episodes={n_episodes}",
+        f"--eval.batch_size={min(n_episodes, 50)}",
+        "--eval.use_async_envs=false",
+        f"--policy.device={device}",
+        f"--seed={seed}",
     ]
     return args + ([f"--env.episode_length={episode_length}"] if episode_length else [])

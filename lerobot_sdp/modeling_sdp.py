@@ -28,7 +28,6 @@ from .noise_schemes import sample_levels
 from .schedule import PerSlotSchedule
 from .unet import make_variable_noise
 
-
 MODEL_CARD_INTRO = (
     "[Streaming Diffusion Policy (SDP)](https://arxiv.org/abs/2406.04806) keeps a buffer of partially "
     "denoised future actions at increasing noise levels, so every executed action chunk costs N/h denoiser "
@@ -73,7 +72,9 @@ class SDPModel(DiffusionModel):
                 f"{self.geometry.horizon}: build the dataset with this config's action_delta_indices."
             )
         global_cond = self._prepare_global_conditioning(batch)
-        levels, _ = sample_levels(self.config.noise_schemes, trajectory.shape[0], self.geometry, self.schedule)
+        levels, _ = sample_levels(
+            self.config.noise_schemes, trajectory.shape[0], self.geometry, self.schedule
+        )
         levels = levels.to(trajectory.device)
         eps = torch.randn_like(trajectory)
         pred = self.unet(self.schedule.add_noise(trajectory, eps, levels), levels, global_cond=global_cond)
@@ -253,7 +254,7 @@ class SDPPolicy(PreTrainedPolicy):
         """Refuse a checkpoint whose tensors do not fit the config (LeRobot loads non-strictly)."""
         expected = {k: tuple(v.shape) for k, v in model.state_dict().items()}
         with safe_open(model_file, "pt") as f:
-            found = {k: tuple(f.get_slice(k).get_shape()) for k in f.keys()}
+            found = {k: tuple(f.get_slice(k).get_shape()) for k in f}
         problems = [f"missing {k}" for k in expected.keys() - found.keys()]
         problems += [f"unexpected {k}" for k in found.keys() - expected.keys()]
         problems += [

@@ -9,7 +9,7 @@ SHARED_ZARR = REPO.parent / "shared" / "data" / "pusht" / "pusht_cchi_v7_replay.
 HUB_KEYPOINTS = "lerobot/pusht_keypoints"
 
 
-class NoPushTData(RuntimeError):
+class NoPushTDataError(RuntimeError):
     pass
 
 
@@ -19,7 +19,7 @@ def find_zarr(explicit: Path | None) -> Path | None:
     for path, origin in ((explicit, "--zarr"), (Path(env) if env else None, "SDP_PUSHT_ZARR")):
         if path is not None:
             if not path.exists():
-                raise NoPushTData(f"{origin} points at {path}, which does not exist.")
+                raise NoPushTDataError(f"{origin} points at {path}, which does not exist.")
             return path
     return SHARED_ZARR if SHARED_ZARR.exists() else None
 
@@ -42,7 +42,7 @@ def keypoints_dataset_args(zarr: Path | None, data_dir: Path) -> list[str]:
             convert_pusht(zarr, root, variant="keypoints", repo_id="local/pusht_keypoints", overwrite=True)
         return ["--dataset.repo_id=local/pusht_keypoints", f"--dataset.root={root}"]
     if hub_offline():
-        raise NoPushTData(
+        raise NoPushTDataError(
             "no Push-T data: pass --zarr /path/to/pusht_cchi_v7_replay.zarr (or set SDP_PUSHT_ZARR), "
             f"or go online (unset HF_HUB_OFFLINE) to download {HUB_KEYPOINTS} from the Hub."
         )

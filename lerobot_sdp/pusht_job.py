@@ -19,7 +19,7 @@ from pathlib import Path
 
 from .benchmarks.stream_cost import stream_cost
 from .lerobot_cli import CLIError, evaluate, pusht_eval_args, train
-from .pusht_data import NoPushTData, keypoints_dataset_args
+from .pusht_data import NoPushTDataError, keypoints_dataset_args
 
 REPO = Path(__file__).resolve().parents[1]
 OBS_TYPE = "environment_state_agent_pos"
@@ -30,7 +30,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--output_dir", type=Path, default=Path("outputs/pusht_main"))
     p.add_argument("--config_path", type=Path, default=REPO / "configs" / "pusht_state_cpu.json")
-    p.add_argument("--zarr", type=Path, default=None, help="pusht_cchi_v7_replay.zarr (default: $SDP_PUSHT_ZARR, then ../shared/data/pusht/)")
+    p.add_argument(
+        "--zarr",
+        type=Path,
+        default=None,
+        help="pusht_cchi_v7_replay.zarr (default: $SDP_PUSHT_ZARR, then ../shared/data/pusht/)",
+    )
     p.add_argument("--eval_episodes", type=int, default=50)
     p.add_argument("--steps", type=int, default=None, help="override the config's training steps")
     p.add_argument("--device", default="cpu")
@@ -56,8 +61,11 @@ def run_job(args: argparse.Namespace) -> dict:
     steps = args.steps or json.loads(args.config_path.read_text())["steps"]
     t0 = time.monotonic()
     train_args = [
-        f"--config_path={args.config_path}", *keypoints_dataset_args(args.zarr, args.output_dir / "data"),
-        f"--save_freq={min(steps, 1000)}", f"--policy.device={args.device}", "--job_name=sdp_pusht_main",
+        f"--config_path={args.config_path}",
+        *keypoints_dataset_args(args.zarr, args.output_dir / "data"),
+        f"--save_freq={min(steps, 1000)}",
+        f"--policy.device={args.device}",
+        "--job_name=sdp_pusht_main",
     ]
     logs = args.output_dir / "logs"
     model_dir = train(args.output_dir / "train", train_args, steps, logs / "train.log")
@@ -99,7 +107,7 @@ def main(argv=None) -> None:
     prepare_output_dir(args)
     try:
         summary = run_job(args)
-    except (CLIError, NoPushTData) as e:
+    except (CLIError, NoPushTDataError) as e:
         sys.exit(f"error: {e}")
     (args.output_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     print_summary(summary, args.output_dir)

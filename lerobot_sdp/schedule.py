@@ -67,12 +67,19 @@ class PerSlotSchedule(nn.Module):
         and reuse them: a step is then a handful of tensor ops (the buffer's bookkeeping budget)."""
         t, t_prev = self.train_timesteps(k), self.train_timesteps((k - 1).clamp(min=0))
         abar, abar_prev = self.alpha_bar(t), self.alpha_bar(t_prev)
-        common = dict(timesteps=t, active=(k > 0).unsqueeze(-1), sqrt_abar=abar.sqrt(), sqrt_one_minus_abar=(1 - abar).sqrt())
+        common = dict(
+            timesteps=t,
+            active=(k > 0).unsqueeze(-1),
+            sqrt_abar=abar.sqrt(),
+            sqrt_one_minus_abar=(1 - abar).sqrt(),
+        )
         if self.is_ddim:
             return StepCoefficients(**common, **ddim_coefficients(abar, abar_prev))
         return StepCoefficients(**common, **ddpm_coefficients(abar, abar_prev, t))
 
-    def apply_step(self, c: "StepCoefficients", model_output: Tensor, sample: Tensor, noise: Tensor | None = None) -> Tensor:
+    def apply_step(
+        self, c: "StepCoefficients", model_output: Tensor, sample: Tensor, noise: Tensor | None = None
+    ) -> Tensor:
         """x_t -> x_{t_prev} for every slot with k > 0; slots with k = 0 are left untouched
         (indexing abar at k = 0 would silently wrap to the noisiest level)."""
         if self.prediction_type == "epsilon":

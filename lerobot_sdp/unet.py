@@ -9,7 +9,10 @@ the U-Net concatenates with the observation conditioning and applies through its
 The flatten ties the network to one horizon (sdp-algorithm.md, section 5).
 """
 
-from lerobot.policies.diffusion.modeling_diffusion import DiffusionConditionalUnet1d, DiffusionSinusoidalPosEmb
+from lerobot.policies.diffusion.modeling_diffusion import (
+    DiffusionConditionalUnet1d,
+    DiffusionSinusoidalPosEmb,
+)
 from torch import Tensor, nn
 
 

@@ -26,7 +26,6 @@ def pusht_zarr() -> Path:
     return path
 
 
-
 @pytest.fixture(autouse=True)
 def _restore_root_logging():
     """CLIs run in-process (`init_logging`, `basicConfig`) attach handlers to the sys.stderr that pytest

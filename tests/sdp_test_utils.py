@@ -13,8 +13,13 @@ def tiny_config(image: bool = False, **overrides):
     else:
         inputs["observation.environment_state"] = PolicyFeature(FeatureType.ENV, (16,))
     kwargs = dict(
-        down_dims=(16, 32), diffusion_step_embed_dim=16, n_action_steps=4, n_chunks=2,
-        num_inference_steps=10, device="cpu", crop_shape=(28, 28) if image else None,
+        down_dims=(16, 32),
+        diffusion_step_embed_dim=16,
+        n_action_steps=4,
+        n_chunks=2,
+        num_inference_steps=10,
+        device="cpu",
+        crop_shape=(28, 28) if image else None,
         spatial_softmax_num_keypoints=4,
         input_features=inputs,
         output_features={"action": PolicyFeature(FeatureType.ACTION, (2,))},
@@ -34,7 +39,12 @@ def observation(config, batch_size: int = 2, seed: int | None = None):
 
 
 PUSHT_STATS = {
-    "observation.state": {"min": [13.0, 32.0], "max": [496.0, 510.0], "mean": [250.0, 260.0], "std": [100.0, 90.0]},
+    "observation.state": {
+        "min": [13.0, 32.0],
+        "max": [496.0, 510.0],
+        "mean": [250.0, 260.0],
+        "std": [100.0, 90.0],
+    },
     "action": {"min": [12.0, 25.0], "max": [511.0, 511.0], "mean": [250.0, 260.0], "std": [100.0, 90.0]},
 }
 
@@ -58,7 +68,11 @@ def make_tiny_pusht_dataset(root, image: bool = False, n_episodes: int = 2, leng
         "next.success": {"dtype": "bool", "shape": (1,), "names": None},
     }
     if image:
-        features["observation.image"] = {"dtype": "image", "shape": (96, 96, 3), "names": ["height", "width", "channel"]}
+        features["observation.image"] = {
+            "dtype": "image",
+            "shape": (96, 96, 3),
+            "names": ["height", "width", "channel"],
+        }
     else:
         features["observation.environment_state"] = {"dtype": "float32", "shape": (16,), "names": None}
     ds = LeRobotDataset.create("local/tiny_pusht", fps=10, features=features, root=root, use_videos=False)

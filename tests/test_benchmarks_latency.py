@@ -18,10 +18,8 @@ BATCH_SIZES = [1, 3]
 def run_bench(tmp_path, *extra: str) -> dict:
     threads = torch.get_num_threads()
     # One thread: on a loaded CI machine two OpenMP threads can be several times slower.
-    cli.main(
-        ["latency", "--quick", "--device", "cpu", "--steps", "2", "--num_threads", "1"]
-        + ["--output_dir", str(tmp_path), *extra]
-    )
+    argv = ["latency", "--quick", "--device", "cpu", "--steps", "2", "--num_threads", "1"]
+    cli.main([*argv, "--output_dir", str(tmp_path), *extra])
     assert torch.get_num_threads() == threads  # an in-process run leaves the caller's setting alone
     return json.loads((tmp_path / "latency.json").read_text())
 

@@ -17,8 +17,19 @@ from lerobot_sdp.benchmarks.quality import (
 
 def test_tiny_comparison_runs_resumes_and_reports(tmp_path, capsys):
     make_tiny_pusht_dataset(tmp_path / "data")
-    argv = ["quality", "--budget", "tiny", "--runs", "comparison", "--output_dir", str(tmp_path / "q"),
-            "--dataset_repo_id", "local/tiny_pusht", "--dataset_root", str(tmp_path / "data")]
+    argv = [
+        "quality",
+        "--budget",
+        "tiny",
+        "--runs",
+        "comparison",
+        "--output_dir",
+        str(tmp_path / "q"),
+        "--dataset_repo_id",
+        "local/tiny_pusht",
+        "--dataset_root",
+        str(tmp_path / "data"),
+    ]
     cli.main(argv)
     report = json.loads((tmp_path / "q" / "results.json").read_text())
     rows = report["rows"]
@@ -32,7 +43,7 @@ def test_tiny_comparison_runs_resumes_and_reports(tmp_path, capsys):
     assert "| sdp_h4 |" in (tmp_path / "q" / "results.md").read_text()
     # the same command again resumes: nothing is retrained, the status says so
     capsys.readouterr()
-    cli.main(argv + ["--status"])
+    cli.main([*argv, "--status"])
     out = capsys.readouterr().out
     assert out.count("evaluated") == 3
 
@@ -49,15 +60,37 @@ def test_ablations_share_one_model_for_the_primers():
 
 def test_comparison_trains_every_policy_the_same_way():
     runs = comparison_runs(BUDGETS["cpu"], "cpu")
-    shared = [set(a for a in r.policy_args if not a.startswith(("--policy.type", "--policy.n_chunks", "--policy.horizon",
-              "--policy.noise_schemes", "--policy.use_ema", "--policy.pretrained"))) for r in runs]
+    shared = [
+        set(
+            a
+            for a in r.policy_args
+            if not a.startswith(
+                (
+                    "--policy.type",
+                    "--policy.n_chunks",
+                    "--policy.horizon",
+                    "--policy.noise_schemes",
+                    "--policy.use_ema",
+                    "--policy.pretrained",
+                )
+            )
+        )
+        for r in runs
+    ]
     assert shared[0] == shared[1] == shared[2]
     assert len({r.steps for r in runs}) == 1
 
 
 def test_markdown_puts_the_papers_numbers_beside_ours():
-    row = {"avg_max_reward": 0.5, "pc_success": 10.0, "denoiser_calls_per_chunk": 50, "latency_per_chunk_ms": 3.0,
-           "train_wall_s": 1.0, "steps": 2, "n_episodes": 2}
+    row = {
+        "avg_max_reward": 0.5,
+        "pc_success": 10.0,
+        "denoiser_calls_per_chunk": 50,
+        "latency_per_chunk_ms": 3.0,
+        "train_wall_s": 1.0,
+        "steps": 2,
+        "n_episodes": 2,
+    }
     text = markdown({"dp": row, "scheme_linear": row}, "tiny", BUDGETS["tiny"])
     assert "| scheme_linear | 0.500 | 10.0 | 0.36 |" in text and "| dp | 0.500 |" in text
 

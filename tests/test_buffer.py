@@ -22,7 +22,7 @@ def test_streaming_invariants_over_1000_calls():
     start_t = sched.train_timesteps(g.start_levels)
     s = g.steps_per_call
     chunk_starts = []
-    for step in range(1000):
+    for _step in range(1000):
         if len(policy._queues["action"]) == 0:
             chunk_starts.append(len(calls))
         action = policy.select_action(observation(cfg, batch_size=3))

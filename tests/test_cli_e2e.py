@@ -16,9 +16,14 @@ from sdp_test_utils import make_tiny_pusht_dataset
 BIN = Path(sys.executable).parent
 ENV = {**os.environ, "HF_HUB_OFFLINE": "1", "WANDB_MODE": "disabled", "MUJOCO_GL": "egl"}
 TINY_POLICY = [
-    "--policy.type=sdp", "--policy.down_dims=[16,32]", "--policy.diffusion_step_embed_dim=16",
-    "--policy.n_action_steps=4", "--policy.num_inference_steps=10", "--policy.device=cpu",
-    "--policy.noise_schemes.chunkwise=0.5", "--policy.noise_schemes.independent=0.3",
+    "--policy.type=sdp",
+    "--policy.down_dims=[16,32]",
+    "--policy.diffusion_step_embed_dim=16",
+    "--policy.n_action_steps=4",
+    "--policy.num_inference_steps=10",
+    "--policy.device=cpu",
+    "--policy.noise_schemes.chunkwise=0.5",
+    "--policy.noise_schemes.independent=0.3",
 ]
 
 
@@ -30,9 +35,16 @@ def run(cmd: list[str], timeout: int = 600, env: dict | None = None) -> str:
 
 def train_args(dataset_root: Path, output_dir: Path, image: bool) -> list[str]:
     args = [
-        "--dataset.repo_id=local/tiny_pusht", f"--dataset.root={dataset_root}", "--steps=2",
-        "--batch_size=4", "--save_freq=2", "--log_freq=1", "--num_workers=0", "--wandb.enable=false",
-        f"--output_dir={output_dir}", *TINY_POLICY,
+        "--dataset.repo_id=local/tiny_pusht",
+        f"--dataset.root={dataset_root}",
+        "--steps=2",
+        "--batch_size=4",
+        "--save_freq=2",
+        "--log_freq=1",
+        "--num_workers=0",
+        "--wandb.enable=false",
+        f"--output_dir={output_dir}",
+        *TINY_POLICY,
     ]
     if image:
         args += ["--policy.crop_shape=[84,84]", "--policy.spatial_softmax_num_keypoints=4"]
@@ -48,12 +60,20 @@ def test_train_then_eval_through_the_clis(tmp_path, image):
     config = json.loads((model_dir / "config.json").read_text())
     assert config["type"] == "sdp" and config["noise_schemes"]["independent"] == 0.3
     obs_type = "pixels_agent_pos" if image else "environment_state_agent_pos"
-    run([
-        str(BIN / "lerobot-eval"), f"--policy.path={model_dir}", "--env.type=pusht",
-        f"--env.obs_type={obs_type}", "--env.episode_length=12", "--eval.n_episodes=1",
-        "--eval.batch_size=1", "--eval.use_async_envs=false", "--policy.device=cpu",
-        f"--output_dir={tmp_path / 'eval'}",
-    ])
+    run(
+        [
+            str(BIN / "lerobot-eval"),
+            f"--policy.path={model_dir}",
+            "--env.type=pusht",
+            f"--env.obs_type={obs_type}",
+            "--env.episode_length=12",
+            "--eval.n_episodes=1",
+            "--eval.batch_size=1",
+            "--eval.use_async_envs=false",
+            "--policy.device=cpu",
+            f"--output_dir={tmp_path / 'eval'}",
+        ]
+    )
     info = json.loads((tmp_path / "eval" / "eval_info.json").read_text())
     overall = info["overall"]
     assert overall["n_episodes"] == 1
@@ -93,12 +113,27 @@ def test_push_to_hub_uploads_weights_config_processors_and_card(tmp_path):
     make_tiny_pusht_dataset(root)
     record = tmp_path / "uploads"
     args = train_args(root, tmp_path / "train", image=False)
-    run([sys.executable, "-c", PUBLISH, str(record), *args, "--policy.push_to_hub=true",
-         "--policy.repo_id=someone/sdp_pusht"])
+    run(
+        [
+            sys.executable,
+            "-c",
+            PUBLISH,
+            str(record),
+            *args,
+            "--policy.push_to_hub=true",
+            "--policy.repo_id=someone/sdp_pusht",
+        ]
+    )
     # record/<upload number>/<repo owner>/<repo name>/<file>
     uploaded = {p.name for p in record.rglob("*") if p.is_file()}
-    for expected in ["model.safetensors", "config.json", "train_config.json", "README.md",
-                     "policy_preprocessor.json", "policy_postprocessor.json"]:
+    for expected in [
+        "model.safetensors",
+        "config.json",
+        "train_config.json",
+        "README.md",
+        "policy_preprocessor.json",
+        "policy_postprocessor.json",
+    ]:
         assert expected in uploaded, f"{expected} not uploaded; got {sorted(uploaded)}"
     assert any(name.startswith("policy_preprocessor_step_") for name in uploaded)
     card = next(record.rglob("README.md")).read_text()

@@ -13,7 +13,12 @@ CONFIGS = sorted((Path(__file__).resolve().parents[1] / "configs").glob("*.json"
 
 def test_there_are_configs():
     names = {p.name for p in CONFIGS}
-    assert {"pusht_state_paper.json", "pusht_image_paper.json", "pusht_state_cpu.json", "pusht_image_cpu.json"} <= names
+    assert {
+        "pusht_state_paper.json",
+        "pusht_image_paper.json",
+        "pusht_state_cpu.json",
+        "pusht_image_cpu.json",
+    } <= names
 
 
 @pytest.mark.parametrize("path", CONFIGS, ids=[p.name for p in CONFIGS])

@@ -34,16 +34,29 @@ def test_offline_safe_defaults():
 
 def test_noise_scheme_weights_parse_from_the_command_line():
     cfg = draccus.parse(
-        SDPConfig, args=["--noise_schemes.independent=0.67", "--noise_schemes.linear=0.33",
-                         "--noise_schemes.chunkwise=0", "--noise_schemes.constant=0"],
+        SDPConfig,
+        args=[
+            "--noise_schemes.independent=0.67",
+            "--noise_schemes.linear=0.33",
+            "--noise_schemes.chunkwise=0",
+            "--noise_schemes.constant=0",
+        ],
     )
-    assert cfg.noise_schemes.as_dict() == {"constant": 0.0, "linear": 0.33, "independent": 0.67, "chunkwise": 0.0}
+    assert cfg.noise_schemes.as_dict() == {
+        "constant": 0.0,
+        "linear": 0.33,
+        "independent": 0.67,
+        "chunkwise": 0.0,
+    }
 
 
 @pytest.mark.parametrize(
     "kwargs, match",
     [
-        (dict(n_chunks=3), r"num_inference_steps=100 is not divisible by n_chunks=3.*Change `num_inference_steps`"),
+        (
+            dict(n_chunks=3),
+            r"num_inference_steps=100 is not divisible by n_chunks=3.*Change `num_inference_steps`",
+        ),
         (dict(n_action_steps=0), "`n_action_steps` must be positive"),
         (dict(num_inference_steps=200), "num_inference_steps=200 > num_train_timesteps=100"),
         (dict(action_primer="ones"), "`action_primer` must be one of"),
@@ -66,11 +79,11 @@ def test_features_are_validated():
     with pytest.raises(ValueError, match="at least one camera"):
         cfg.validate_features()
     cfg = tiny_config(image=True, crop_shape=(40, 40))
-    with pytest.raises(ValueError, match="does not fit `observation.image`"):
+    with pytest.raises(ValueError, match=r"does not fit `observation\.image`"):
         cfg.validate_features()
     cfg = tiny_config()
     cfg.input_features.pop("observation.state")
-    with pytest.raises(ValueError, match="needs `observation.state`"):
+    with pytest.raises(ValueError, match=r"needs `observation\.state`"):
         cfg.validate_features()
     cfg = tiny_config(image=True)
     cfg.input_features["observation.image2"] = PolicyFeature(FeatureType.VISUAL, (3, 64, 64))

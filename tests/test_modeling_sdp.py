@@ -104,7 +104,7 @@ def test_missing_observation_feature_is_named():
     cfg = tiny_config()
     obs = observation(cfg)
     del obs["observation.environment_state"]
-    with pytest.raises(ValueError, match="missing `observation.environment_state`"):
+    with pytest.raises(ValueError, match=r"missing `observation\.environment_state`"):
         SDPPolicy(cfg).eval().select_action(obs)
 
 
@@ -130,7 +130,7 @@ def test_constant_primer_needs_state_and_action_in_one_space():
 
     cfg = tiny_config(action_primer="constant")
     cfg.input_features["observation.state"] = PolicyFeature(FeatureType.STATE, (7,))
-    with pytest.raises(ValueError, match="not one space.*action_primer=zero"):
+    with pytest.raises(ValueError, match=r"not one space.*action_primer=zero"):
         SDPPolicy(cfg)
 
 
@@ -145,7 +145,10 @@ def test_constant_primer_starts_from_the_current_state():
     cfg = tiny_config(action_primer="constant")
     policy = SDPPolicy(cfg, dataset_stats=PUSHT_STATS)
     raw = torch.tensor([[100.0, 300.0]])
-    s_min, s_max = torch.tensor(PUSHT_STATS["observation.state"]["min"]), torch.tensor(PUSHT_STATS["observation.state"]["max"])
+    s_min, s_max = (
+        torch.tensor(PUSHT_STATS["observation.state"]["min"]),
+        torch.tensor(PUSHT_STATS["observation.state"]["max"]),
+    )
     a_min, a_max = torch.tensor(PUSHT_STATS["action"]["min"]), torch.tensor(PUSHT_STATS["action"]["max"])
     norm_state = (raw - s_min) / (s_max - s_min) * 2 - 1
     batch = {"observation.state": norm_state.unsqueeze(1)}

@@ -8,8 +8,12 @@ from lerobot_sdp.schedule import PerSlotSchedule
 
 
 def setup(n_inference=100, n_chunks=2):
-    g = ChunkGeometry(n_obs_steps=2, chunk_len=4, n_chunks=n_chunks, num_inference_steps=n_inference, downsampling=4)
-    return g, PerSlotSchedule(DDPMScheduler(num_train_timesteps=100, beta_schedule="squaredcos_cap_v2"), n_inference)
+    g = ChunkGeometry(
+        n_obs_steps=2, chunk_len=4, n_chunks=n_chunks, num_inference_steps=n_inference, downsampling=4
+    )
+    return g, PerSlotSchedule(
+        DDPMScheduler(num_train_timesteps=100, beta_schedule="squaredcos_cap_v2"), n_inference
+    )
 
 
 @pytest.mark.parametrize("name", list(SCHEMES))

@@ -4,8 +4,8 @@ gym-pusht's observation, overwrite refusal and one-line errors."""
 
 import dataclasses
 
-import gymnasium as gym
 import gym_pusht  # noqa: F401  (registers gym_pusht/PushT-v0)
+import gymnasium as gym
 import numpy as np
 import pytest
 import zarr
@@ -155,7 +155,7 @@ def test_cli_episode_subset_keeps_the_given_order(synthetic, tmp_path, capsys):
     out = tmp_path / "subset"
     main([str(path), str(out), "--variant", "keypoints", "--with-images", "--episodes", "2,0"])
     assert "--dataset.root=" in capsys.readouterr().out
-    dataset, rows = load(out, "local/pusht_keypoints")
+    _dataset, rows = load(out, "local/pusht_keypoints")
     assert np.bincount(rows["episode_index"]).tolist() == [5, 4]
     zarr_frames = np.r_[7:12, 0:4]  # zarr episode 2, then episode 0
     assert np.array_equal(rows["action"], arrays["data/action"][zarr_frames])

@@ -9,8 +9,8 @@ h5py = pytest.importorskip(
     "h5py", reason="the converter needs h5py: pip install 'lerobot_policy_sdp[robomimic]'"
 )
 
-from lerobot_sdp.robomimic.convert import convert, main
-from lerobot_sdp.robomimic.tasks import get_task
+from lerobot_sdp.robomimic.convert import convert, main  # noqa: E402 (after the importorskip)
+from lerobot_sdp.robomimic.tasks import get_task  # noqa: E402
 
 LENGTHS = {"demo_0": 5, "demo_1": 7, "demo_10": 4}  # demo_10 after demo_1: numeric order
 IMAGE = 8

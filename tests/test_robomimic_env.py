@@ -22,7 +22,10 @@ EXPECTED = {
 
 def test_config_module_imports_without_robosuite():
     """LeRobot imports the config on every CLI start: it must not pull in robosuite (or need it)."""
-    code = "import sys, lerobot_sdp.robomimic.config; assert 'robosuite' not in sys.modules, 'robosuite imported'"
+    code = (
+        "import sys, lerobot_sdp.robomimic.config; "
+        "assert 'robosuite' not in sys.modules, 'robosuite imported'"
+    )
     subprocess.run([sys.executable, "-c", code], check=True)
 
 

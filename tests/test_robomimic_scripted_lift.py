@@ -3,10 +3,12 @@
 import numpy as np
 import pytest
 
-pytest.importorskip("robosuite", reason="robosuite is not installed: pip install 'lerobot_policy_sdp[robomimic]'")
+pytest.importorskip(
+    "robosuite", reason="robosuite is not installed: pip install 'lerobot_policy_sdp[robomimic]'"
+)
 
-from lerobot_sdp.robomimic.env import RobomimicEnv  # noqa: E402
-from lerobot_sdp.robomimic.scripted_lift import LiftDemonstrator, _run_episode, record  # noqa: E402
+from lerobot_sdp.robomimic.env import RobomimicEnv
+from lerobot_sdp.robomimic.scripted_lift import LiftDemonstrator, _run_episode, record
 
 
 @pytest.fixture(scope="module")

@@ -13,8 +13,11 @@ B, T, A = 3, 12, 2
 def make(kind: str, prediction_type: str = "epsilon", clip: bool = True, n_train: int = 100):
     cls = DDPMScheduler if kind == "DDPM" else DDIMScheduler
     kwargs = dict(
-        num_train_timesteps=n_train, beta_schedule="squaredcos_cap_v2", clip_sample=clip,
-        clip_sample_range=1.0, prediction_type=prediction_type,
+        num_train_timesteps=n_train,
+        beta_schedule="squaredcos_cap_v2",
+        clip_sample=clip,
+        clip_sample_range=1.0,
+        prediction_type=prediction_type,
     )
     return cls(**kwargs), cls(**kwargs)
 

@@ -323,7 +323,8 @@ class Contender:
         end = clock.now()
         if self.denoiser.calls != sampling_calls or sampling_calls == 0:
             raise RuntimeError(
-                f"{self.name}: the denoiser ran {sampling_calls} times in the first call of a chunk cycle and "
+                f"{self.name}: the denoiser ran {sampling_calls} times in the first call of a chunk cycle "
+                "and "
                 f"{self.denoiser.calls - sampling_calls} times in the queue pops: the cycles are misaligned."
             )
         return Cycle(

@@ -57,8 +57,15 @@ SCHEMES = {  # the paper's Table (b): name -> noise_schemes weights
     "ind67_cw33": {"independent": 0.67, "chunkwise": 0.33},
     "cw80_const20": {"chunkwise": 0.8, "constant": 0.2},
 }
-PAPER_SCHEMES = {"chunkwise": 0.86, "linear": 0.36, "independent": 0.85, "constant": 0.29,
-                 "ind67_lin33": 0.87, "ind67_cw33": 0.89, "cw80_const20": 0.90}
+PAPER_SCHEMES = {
+    "chunkwise": 0.86,
+    "linear": 0.36,
+    "independent": 0.85,
+    "constant": 0.29,
+    "ind67_lin33": 0.87,
+    "ind67_cw33": 0.89,
+    "cw80_const20": 0.90,
+}
 PAPER_PRIMERS = {"zero": 0.90, "constant": 0.90, "denoise": 0.90}
 
 
@@ -77,23 +84,38 @@ class Run:
 
 def policy_args(budget: Budget, policy: str, device: str) -> list[str]:
     common = [
-        f"--policy.type={policy}", "--policy.n_obs_steps=2", "--policy.n_action_steps=8",
-        f"--policy.down_dims=[{','.join(map(str, budget.down_dims))}]", "--policy.kernel_size=5",
-        f"--policy.diffusion_step_embed_dim={budget.embed_dim}", f"--policy.noise_scheduler_type={budget.scheduler}",
-        "--policy.num_train_timesteps=100", f"--policy.num_inference_steps={budget.num_inference_steps}",
-        f"--policy.optimizer_lr={budget.lr}", f"--policy.scheduler_warmup_steps={budget.warmup}",
-        f"--policy.device={device}", "--policy.push_to_hub=false",
+        f"--policy.type={policy}",
+        "--policy.n_obs_steps=2",
+        "--policy.n_action_steps=8",
+        f"--policy.down_dims=[{','.join(map(str, budget.down_dims))}]",
+        "--policy.kernel_size=5",
+        f"--policy.diffusion_step_embed_dim={budget.embed_dim}",
+        f"--policy.noise_scheduler_type={budget.scheduler}",
+        "--policy.num_train_timesteps=100",
+        f"--policy.num_inference_steps={budget.num_inference_steps}",
+        f"--policy.optimizer_lr={budget.lr}",
+        f"--policy.scheduler_warmup_steps={budget.warmup}",
+        f"--policy.device={device}",
+        "--policy.push_to_hub=false",
     ]
     if policy == "diffusion":
-        return common + [f"--policy.horizon={DP_HORIZON}", "--policy.pretrained_backbone_weights=null"]
-    return common + ["--policy.use_ema=false"]
+        return [*common, f"--policy.horizon={DP_HORIZON}", "--policy.pretrained_backbone_weights=null"]
+    return [*common, "--policy.use_ema=false"]
 
 
 def sdp_args(budget: Budget, device: str, n_chunks: int, schemes: dict | None = None) -> list[str]:
-    weights = {"constant": 0.0, "linear": 0.0, "independent": 0.0, "chunkwise": 0.0, **(schemes or SCHEMES["cw80_const20"])}
-    return policy_args(budget, "sdp", device) + [f"--policy.n_chunks={n_chunks}"] + [
-        f"--policy.noise_schemes.{k}={v}" for k, v in weights.items()
-    ]
+    weights = {
+        "constant": 0.0,
+        "linear": 0.0,
+        "independent": 0.0,
+        "chunkwise": 0.0,
+        **(schemes or SCHEMES["cw80_const20"]),
+    }
+    return (
+        policy_args(budget, "sdp", device)
+        + [f"--policy.n_chunks={n_chunks}"]
+        + [f"--policy.noise_schemes.{k}={v}" for k, v in weights.items()]
+    )
 
 
 def comparison_runs(budget: Budget, device: str) -> list[Run]:
@@ -118,24 +140,34 @@ def run_dir(output_dir: Path, run: Run) -> Path:
     return output_dir / "runs" / run.name
 
 
-def execute(run: Run, output_dir: Path, data_args: list[str], common: list[str], budget: Budget, device: str) -> dict:
+def execute(
+    run: Run, output_dir: Path, data_args: list[str], common: list[str], budget: Budget, device: str
+) -> dict:
     """Train (or resume, or reuse) and evaluate one run; returns its row."""
     model_root = output_dir / "runs" / run.model_run
     timing_file = model_root / "timing.json"
     timing = json.loads(timing_file.read_text()) if timing_file.exists() else {"train_wall_s": 0.0}
     t0 = time.monotonic()
-    model_dir = train(model_root / "train", [*data_args, *common, *run.policy_args], run.steps, model_root / "train.log")
+    model_dir = train(
+        model_root / "train", [*data_args, *common, *run.policy_args], run.steps, model_root / "train.log"
+    )
     if not run.trains_as:
         timing["train_wall_s"] += time.monotonic() - t0
         timing_file.write_text(json.dumps(timing))
     overrides = [f"--policy.{k}={v}" for k, v in run.eval_overrides.items()]
-    eval_args = pusht_eval_args(OBS_TYPE, budget.n_episodes, EVAL_SEED, device, budget.episode_length) + overrides
+    eval_args = (
+        pusht_eval_args(OBS_TYPE, budget.n_episodes, EVAL_SEED, device, budget.episode_length) + overrides
+    )
     here = run_dir(output_dir, run)
     metrics = evaluate(model_dir, here / "eval", eval_args, here / "eval.log")
     cost = stream_cost(model_dir, overrides=run.eval_overrides)
     return {
-        "run": run.name, "pc_success": metrics["pc_success"], "avg_max_reward": metrics["avg_max_reward"],
-        "n_episodes": metrics["n_episodes"], "steps": run.steps, **cost,
+        "run": run.name,
+        "pc_success": metrics["pc_success"],
+        "avg_max_reward": metrics["avg_max_reward"],
+        "n_episodes": metrics["n_episodes"],
+        "steps": run.steps,
+        **cost,
         "train_wall_s": round(timing["train_wall_s"], 1),
     }
 
@@ -145,26 +177,36 @@ def status(runs: list[Run], output_dir: Path) -> list[str]:
     for run in runs:
         done = trained_steps(output_dir / "runs" / run.model_run / "train")
         evaluated = (run_dir(output_dir, run) / "eval" / "eval_info.json").exists()
-        state = "evaluated" if evaluated else ("trained" if done >= run.steps else f"training {done}/{run.steps}")
+        state = (
+            "evaluated" if evaluated else ("trained" if done >= run.steps else f"training {done}/{run.steps}")
+        )
         lines.append(f"{run.name:24s} {state}")
     return lines
 
 
 def markdown(rows: dict[str, dict], budget_name: str, budget: Budget) -> str:
-    head = "| run | avg_max_reward | pc_success | paper score | denoiser calls / chunk | eval latency / chunk (ms, CPU, batch 1) | train wall (s) | steps | episodes |"
+    head = (
+        "| run | avg_max_reward | pc_success | paper score | denoiser calls / chunk "
+        "| eval latency / chunk (ms, CPU, batch 1) | train wall (s) | steps | episodes |"
+    )
     sep = "|" + "---|" * 9
 
     def line(name, row, paper=""):
-        return (f"| {name} | {row['avg_max_reward']:.3f} | {row['pc_success']:.1f} | {paper} | "
-                f"{row['denoiser_calls_per_chunk']:g} | {row['latency_per_chunk_ms']:.1f} | {row['train_wall_s']:.0f} | "
-                f"{row['steps']} | {row['n_episodes']} |")
+        return (
+            f"| {name} | {row['avg_max_reward']:.3f} | {row['pc_success']:.1f} | {paper} | "
+            f"{row['denoiser_calls_per_chunk']:g} | {row['latency_per_chunk_ms']:.1f} | "
+            f"{row['train_wall_s']:.0f} | "
+            f"{row['steps']} | {row['n_episodes']} |"
+        )
 
     out = [f"Budget `{budget_name}`: {asdict(budget)}", "", "### Comparison", "", head, sep]
     out += [line(n, rows[n]) for n in ("dp", "sdp_h2", "sdp_h4") if n in rows]
     ablations = [n for n in rows if n.startswith(("scheme_", "primer_"))]
     if ablations:
         out += ["", f"### Ablations (reduced budget: {budget.ablation_steps} steps)", "", head, sep]
-        paper = {f"scheme_{k}": v for k, v in PAPER_SCHEMES.items()} | {f"primer_{k}": v for k, v in PAPER_PRIMERS.items()}
+        paper = {f"scheme_{k}": v for k, v in PAPER_SCHEMES.items()} | {
+            f"primer_{k}": v for k, v in PAPER_PRIMERS.items()
+        }
         out += [line(n, rows[n], f"{paper[n]:.2f}") for n in ablations]
     return "\n".join(out) + "\n"
 
@@ -173,13 +215,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--budget", choices=list(BUDGETS), default="cpu")
     parser.add_argument("--runs", choices=["comparison", "ablations", "all"], default="comparison")
     parser.add_argument("--output_dir", type=Path, default=None, help="default: outputs/quality_<budget>")
-    parser.add_argument("--zarr", type=Path, default=None, help="Push-T zarr (default: $SDP_PUSHT_ZARR, ../shared/...)")
-    parser.add_argument("--dataset_repo_id", default=None, help="use this LeRobotDataset instead (with --dataset_root)")
+    parser.add_argument(
+        "--zarr", type=Path, default=None, help="Push-T zarr (default: $SDP_PUSHT_ZARR, ../shared/...)"
+    )
+    parser.add_argument(
+        "--dataset_repo_id", default=None, help="use this LeRobotDataset instead (with --dataset_root)"
+    )
     parser.add_argument("--dataset_root", type=Path, default=None)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--status", action="store_true", help="print where each run stands and exit")
-    parser.add_argument("--steps", type=int, default=None,
-                        help="train every run this many steps instead of the budget's (a reduced budget, labelled so)")
+    parser.add_argument(
+        "--steps",
+        type=int,
+        default=None,
+        help="train every run this many steps instead of the budget's (a reduced budget, labelled so)",
+    )
 
 
 def resolve_budget(args: argparse.Namespace) -> tuple[str, Budget]:
@@ -196,16 +246,26 @@ def run(args: argparse.Namespace) -> dict:
     budget_name, budget = resolve_budget(args)
     output_dir = args.output_dir or Path(f"outputs/quality_{budget_name}")
     runs = {"comparison": comparison_runs, "ablations": ablation_runs}
-    selected = [r for kind in (runs if args.runs == "all" else [args.runs]) for r in runs[kind](budget, args.device)]
+    selected = [
+        r for kind in (runs if args.runs == "all" else [args.runs]) for r in runs[kind](budget, args.device)
+    ]
     print("\n".join(status(selected, output_dir)), flush=True)
     if args.status:
         return {}
     if args.dataset_repo_id:
-        data_args = [f"--dataset.repo_id={args.dataset_repo_id}"] + ([f"--dataset.root={args.dataset_root}"] if args.dataset_root else [])
+        data_args = [f"--dataset.repo_id={args.dataset_repo_id}"] + (
+            [f"--dataset.root={args.dataset_root}"] if args.dataset_root else []
+        )
     else:
         data_args = keypoints_dataset_args(args.zarr, output_dir / "data")
-    common = [f"--batch_size={budget.batch_size}", "--seed=1000", "--num_workers=0", "--wandb.enable=false",
-              f"--save_freq={max(1, min(budget.steps, 2000))}", "--log_freq=200"]
+    common = [
+        f"--batch_size={budget.batch_size}",
+        "--seed=1000",
+        "--num_workers=0",
+        "--wandb.enable=false",
+        f"--save_freq={max(1, min(budget.steps, 2000))}",
+        "--log_freq=200",
+    ]
     results_file = output_dir / "results.json"
     rows = json.loads(results_file.read_text())["rows"] if results_file.exists() else {}
     for r in selected:

@@ -40,7 +40,8 @@ class RobomimicEnvConfig(EnvConfig):
         check_obs_type(self.obs_type)
         if self.fps != CONTROL_FREQ:
             raise ValueError(
-                f"robomimic's controllers run at {CONTROL_FREQ} Hz, got fps={self.fps}: leave `--env.fps` unset."
+                f"robomimic's controllers run at {CONTROL_FREQ} Hz, got fps={self.fps}: "
+                "leave `--env.fps` unset."
             )
         if self.episode_length is None:
             self.episode_length = spec.episode_length

@@ -118,7 +118,8 @@ def _verify_episode(table, demo: Demo, episode: int, start: int) -> None:
         got = np.stack([np.asarray(value) for value in rows[key]]).reshape(want.shape)
         if not np.array_equal(got, want):
             raise RuntimeError(
-                f"Conversion changed {demo.name} {key}: {int((got != want).sum())} of {want.size} values differ."
+                f"Conversion changed {demo.name} {key}: "
+                f"{int((got != want).sum())} of {want.size} values differ."
             )
 
 
@@ -156,7 +157,8 @@ def main(argv: list[str] | None = None) -> None:
         overwrite=args.overwrite,
     )
     print(
-        f"Wrote {dataset.meta.total_episodes} episodes ({dataset.meta.total_frames} frames) to {args.output_dir}, "
+        f"Wrote {dataset.meta.total_episodes} episodes ({dataset.meta.total_frames} frames) "
+        f"to {args.output_dir}, "
         "verified equal to the source."
     )
 

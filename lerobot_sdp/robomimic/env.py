@@ -169,10 +169,11 @@ class RobomimicEnv(gym.Env):
             return False
         try:
             MjRenderContextOffscreen(sim, device_id=-1)  # registers itself on `sim`
-        except Exception as err:  # noqa: BLE001  (GL backends fail with many exception types)
+        except Exception as err:
             self._render_failed = True
             logger.warning(
-                "Offscreen rendering is unavailable (%s): video frames will be black, metrics are unaffected. "
+                "Offscreen rendering is unavailable (%s): video frames will be black, "
+                "metrics are unaffected. "
                 "Set MUJOCO_GL=egl (libegl1) or MUJOCO_GL=osmesa (libosmesa6) to render.",
                 err,
             )

@@ -188,7 +188,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--obs_type", choices=OBS_TYPES, default="low_dim")
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED, help="episode i uses seed + i")
     parser.add_argument(
-        "--hold_steps", type=int, default=0, help="keep recording this many steps after success, still lifting"
+        "--hold_steps",
+        type=int,
+        default=0,
+        help="keep recording this many steps after success, still lifting",
     )
     parser.add_argument("--max_attempts", type=int, default=None, help="give up after this many (2N+10)")
     parser.add_argument(
