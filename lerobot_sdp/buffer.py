@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from .geometry import ChunkGeometry
-from .schedule import PerSlotSchedule, StepCoefficients
+from .schedule import PerSlotSchedule, StepCoefficients, gaussian_like
 
 # (noisy sequence (B, T, A), training timesteps (B, T)) -> model output (B, T, A)
 Denoiser = Callable[[Tensor, Tensor], Tensor]
@@ -28,13 +28,17 @@ def reverse_plan(schedule: PerSlotSchedule, k_start: Tensor, n_steps: int) -> li
 
 
 def run_reverse_steps(
-    schedule: PerSlotSchedule, denoiser: Denoiser, sample: Tensor, plan: list[StepCoefficients]
+    schedule: PerSlotSchedule,
+    denoiser: Denoiser,
+    sample: Tensor,
+    plan: list[StepCoefficients],
+    generator: torch.Generator | None = None,
 ) -> Tensor:
     """One denoiser call and one per-slot reverse step per entry of ``plan``."""
     batch = sample.shape[0]
     for c in plan:
         model_output = denoiser(sample, c.timesteps.expand(batch, -1))
-        sample = schedule.apply_step(c, model_output, sample)
+        sample = schedule.apply_step(c, model_output, sample, generator=generator)
     return sample
 
 
@@ -61,28 +65,29 @@ class StreamingBuffer:
             self._plan = reverse_plan(self.schedule, k_start, self.geometry.steps_per_call)
         return self._plan
 
-    def prime(self, primer: Tensor) -> None:
+    def prime(self, primer: Tensor, generator: torch.Generator | None = None) -> None:
         """Noise a clean (normalised) primer sequence (B, T, A) to the start levels (paper Eq. 4)."""
         t = self._call_plan(primer.device)[0].timesteps.expand(primer.shape[0], -1)
-        self.sample = self.schedule.add_noise(primer, torch.randn_like(primer), t)
+        self.sample = self.schedule.add_noise(primer, gaussian_like(primer, generator), t)
 
-    def advance(self, denoiser: Denoiser) -> Tensor:
-        """Run s denoiser calls, pop the now clean chunk (B, Tb, A) and roll the buffer forward."""
+    def advance(self, denoiser: Denoiser, generator: torch.Generator | None = None) -> Tensor:
+        """Run s denoiser calls, pop the now clean chunk (B, Tb, A) and roll the buffer forward.
+        Every random draw (DDPM step noise, re-noised past slots, the new tail) uses ``generator``."""
         if self.sample is None:
             raise RuntimeError("The streaming buffer is empty: call prime() after reset().")
         plan = self._call_plan(self.sample.device)
-        sample = run_reverse_steps(self.schedule, denoiser, self.sample, plan)
+        sample = run_reverse_steps(self.schedule, denoiser, self.sample, plan, generator)
         chunk = sample[:, self.geometry.executed]
-        self.sample = self._shift(sample, plan[0])
+        self.sample = self._shift(sample, plan[0], generator)
         return chunk
 
-    def _shift(self, sample: Tensor, start: StepCoefficients) -> Tensor:
+    def _shift(self, sample: Tensor, start: StepCoefficients, generator: torch.Generator | None) -> Tensor:
         g = self.geometry
         kept = sample[:, g.chunk_len : g.n_past + g.n_future]  # past slots, then chunks 1..h-1
         past, rest = kept[:, : g.n_past], kept[:, g.n_past :]
         # re-noise the executed actions now in the past slots to chunk 0's start level
-        past = start.sqrt_abar[: g.n_past] * past + start.sqrt_one_minus_abar[: g.n_past] * torch.randn_like(
-            past
-        )
-        tail = torch.randn_like(sample[:, : g.chunk_len + g.n_pad])  # new last chunk + padding, level N
+        a, b = start.sqrt_abar[: g.n_past], start.sqrt_one_minus_abar[: g.n_past]
+        past = a * past + b * gaussian_like(past, generator)
+        # the new last chunk and the padding start at level N: pure noise
+        tail = gaussian_like(sample[:, : g.chunk_len + g.n_pad], generator)
         return torch.cat([past, rest, tail], dim=1)

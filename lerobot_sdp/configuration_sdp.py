@@ -171,8 +171,13 @@ class SDPConfig(PreTrainedConfig):
 
     @property
     def drop_n_last_frames(self) -> int:
-        # As DP: drop start frames whose executed chunk would run past the episode end.
-        return self.horizon - self.n_action_steps - self.n_obs_steps + 1
+        """Start frames LeRobot's EpisodeAwareSampler drops at each episode's end: exactly those whose
+        executed chunk would run past it. The current frame sits at slot To-1 (the first executed
+        slot), so the executed chunk reaches frame t + Tb - 1; every later slot may run past the end
+        and is copy-padded by the dataset (`action_is_pad`). With this, every frame of an episode is
+        executed in some training sample, at any h (DP's field is 7: the same at Tb = 8)."""
+        g = self.geometry
+        return g.executed.stop - 1 - g.n_past
 
     def get_optimizer_preset(self) -> AdamConfig:
         return AdamConfig(

@@ -13,10 +13,11 @@ from collections import deque
 
 import torch
 import torch.nn.functional as F  # noqa: N812
-from lerobot.configs import NormalizationMode
 from lerobot.policies.diffusion.modeling_diffusion import DiffusionModel
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.policies.utils import populate_queues
+from lerobot.processor import NormalizerProcessorStep, TransitionKey, UnnormalizerProcessorStep
+from lerobot.processor.converters import create_transition
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 from safetensors import safe_open
 from torch import Tensor
@@ -49,19 +50,14 @@ class SDPModel(DiffusionModel):
         return lambda sample, timesteps: self.unet(sample, timesteps, global_cond=global_cond)
 
     def conditional_sample(
-        self,
-        batch_size: int,
-        global_cond: Tensor | None = None,
-        generator: torch.Generator | None = None,
-        noise: Tensor | None = None,
+        self, batch_size: int, global_cond: Tensor, generator: torch.Generator | None = None
     ) -> Tensor:
         """Full N-step denoise with every slot at one level: DP-style sampling, SDP's "denoise" primer."""
-        param = next(self.unet.parameters())
         shape = (batch_size, self.geometry.horizon, self.config.action_feature.shape[0])
-        sample = noise if noise is not None else torch.randn(shape, generator=generator, device=param.device)
+        sample = torch.randn(shape, generator=generator, device=global_cond.device, dtype=global_cond.dtype)
         n = self.num_inference_steps
         plan = reverse_plan(self.schedule, torch.full((self.geometry.horizon,), n, device=sample.device), n)
-        return run_reverse_steps(self.schedule, self.denoiser(global_cond), sample, plan)
+        return run_reverse_steps(self.schedule, self.denoiser(global_cond), sample, plan, generator)
 
     def compute_loss(self, batch: dict[str, Tensor]) -> Tensor:
         """Paper Eq. 5: MSE between the noise (or clean actions) and the prediction, levels per slot."""
@@ -72,9 +68,7 @@ class SDPModel(DiffusionModel):
                 f"{self.geometry.horizon}: build the dataset with this config's action_delta_indices."
             )
         global_cond = self._prepare_global_conditioning(batch)
-        levels, _ = sample_levels(
-            self.config.noise_schemes, trajectory.shape[0], self.geometry, self.schedule
-        )
+        levels = sample_levels(self.config.noise_schemes, trajectory.shape[0], self.geometry, self.schedule)
         levels = levels.to(trajectory.device)
         eps = torch.randn_like(trajectory)
         pred = self.unet(self.schedule.add_noise(trajectory, eps, levels), levels, global_cond=global_cond)
@@ -88,26 +82,44 @@ class SDPModel(DiffusionModel):
 
 def state_to_action_map(config: SDPConfig, dataset_stats: dict | None) -> Tensor:
     """(2, A) scale and offset taking a normalised state to the normalised action of the same raw
-    value (the "constant" primer). NaN when the stats are unknown or the spaces differ."""
+    value (the "constant" primer). NaN when the stats are unknown or the spaces differ.
+
+    Computed with LeRobot's own normaliser steps (any normalisation mode they support): unnormalise
+    the state, normalise it as an action. Both maps are affine per dimension, so probing them at 0
+    and 1 gives the whole map, which is stored so that a checkpoint needs no statistics to prime."""
     action_dim = config.action_feature.shape[0]
     out = torch.full((2, action_dim), float("nan"))
-    state_ft = config.robot_state_feature
     if not dataset_stats or OBS_STATE not in dataset_stats or ACTION not in dataset_stats:
         return out
-    if tuple(state_ft.shape) != (action_dim,):
+    if tuple(config.robot_state_feature.shape) != (action_dim,):
         return out
+    step_args = dict(
+        features={OBS_STATE: config.robot_state_feature, ACTION: config.action_feature},
+        norm_map=config.normalization_mapping,
+        stats={key: dataset_stats[key] for key in (OBS_STATE, ACTION)},
+    )
+    probe = torch.stack([torch.zeros(action_dim), torch.ones(action_dim)])
+    raw = UnnormalizerProcessorStep(**step_args)(create_transition(observation={OBS_STATE: probe}))
+    as_action = NormalizerProcessorStep(**step_args)(
+        create_transition(action=raw[TransitionKey.OBSERVATION][OBS_STATE])
+    )[TransitionKey.ACTION]
+    return torch.stack([as_action[1] - as_action[0], as_action[0]])
 
-    def to_raw(key: str, mode: NormalizationMode) -> tuple[Tensor, Tensor]:
-        st = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in dataset_stats[key].items()}
-        if mode is NormalizationMode.MIN_MAX:
-            return (st["max"] - st["min"]) / 2, (st["max"] + st["min"]) / 2
-        if mode is NormalizationMode.MEAN_STD:
-            return st["std"], st["mean"]
-        return torch.ones(action_dim), torch.zeros(action_dim)
 
-    a_s, b_s = to_raw(OBS_STATE, config.normalization_mapping["STATE"])
-    a_a, b_a = to_raw(ACTION, config.normalization_mapping["ACTION"])
-    return torch.stack([a_s / a_a, (b_s - b_a) / a_a])
+def reject_unknown_kwargs(method: str, kwargs: dict) -> None:
+    """LeRobot passes extra keywords through `**kwargs`; SDP refuses what it would silently ignore."""
+    if not kwargs:
+        return
+    hint = (
+        " SDP draws fresh noise into its buffer on every chunk, so one initial noise tensor cannot fix "
+        "its actions: pass `generator=torch.Generator(device).manual_seed(...)` for reproducible actions."
+        if "noise" in kwargs
+        else ""
+    )
+    raise TypeError(
+        f"SDPPolicy.{method}() got unexpected keyword argument(s) {sorted(kwargs)}; it accepts "
+        f"`generator`.{hint}"
+    )
 
 
 class SDPPolicy(PreTrainedPolicy):
@@ -161,7 +173,9 @@ class SDPPolicy(PreTrainedPolicy):
         batch[OBS_IMAGES] = torch.stack([batch[key] for key in self.config.image_features], dim=-4)
         return batch
 
-    def _check_observation(self, batch: dict[str, Tensor]) -> None:
+    def _check_observation(self, batch: dict[str, Tensor], time_axis: bool) -> None:
+        """Every input feature present with its trained shape ((B, To, *shape) with ``time_axis``)."""
+        to = (self.config.n_obs_steps,) if time_axis else ()
         for key, ft in self.config.input_features.items():
             if key not in batch:
                 raise ValueError(
@@ -170,56 +184,84 @@ class SDPPolicy(PreTrainedPolicy):
                     "(e.g. `--env.obs_type`) or the processor's rename map."
                 )
             value = batch[key]
-            if tuple(value.shape[1:]) != tuple(ft.shape):
+            if not isinstance(value, Tensor) or tuple(value.shape[1:]) != (*to, *ft.shape):
+                shape = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
                 raise ValueError(
-                    f"Observation `{key}` has shape {tuple(value.shape)}, expected (batch, "
-                    f"{', '.join(map(str, ft.shape))}). Check the environment matches the training data."
+                    f"Observation `{key}` has shape {shape}, expected "
+                    f"(batch, {', '.join(map(str, (*to, *ft.shape)))}). "
+                    "Check the environment (or dataset) matches the training data."
                 )
 
     @torch.no_grad()
-    def select_action(self, batch: dict[str, Tensor], noise: Tensor | None = None) -> Tensor:
-        """Pop the next action; when the queue is empty run one streaming step (N/h denoiser calls)."""
-        batch = {k: v for k, v in batch.items() if k != ACTION}
-        self._check_observation(batch)
+    def select_action(
+        self, batch: dict[str, Tensor], generator: torch.Generator | None = None, **kwargs
+    ) -> Tensor:
+        """Pop the next action; when the queue is empty run one streaming step (N/h denoiser calls).
+        ``generator`` seeds every random draw of that step (same generator state, same actions)."""
+        reject_unknown_kwargs("select_action", kwargs)
+        self._check_observation(batch, time_axis=False)
         queued = self._queues[OBS_STATE]
         if queued and queued[-1].shape[0] != batch[OBS_STATE].shape[0]:
             logging.warning("SDP: the batch size changed without reset(); starting a new stream.")
             self.reset()
         self._queues = populate_queues(self._queues, self._stack_cameras(batch))
         if not self._queues[ACTION]:
-            self._queues[ACTION].extend(self.predict_action_chunk(batch).transpose(0, 1))
+            self._queues[ACTION].extend(self.predict_action_chunk(batch, generator=generator).transpose(0, 1))
         return self._queues[ACTION].popleft()
 
+    def _offline_history(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        """A dataloader batch, as LeRobot's Diffusion Policy takes it: (B, To, ...) per input feature
+        (extra keys such as `task`, `index` or `action` are ignored); with To = 1 the time axis may be
+        absent, as a (B, C, H, W) image."""
+        history = {}
+        for key, value in batch.items():
+            ft = self.config.input_features.get(key)
+            if ft is None:
+                continue
+            no_time_axis = isinstance(value, Tensor) and value.ndim == len(ft.shape) + 1
+            history[key] = value.unsqueeze(1) if self.config.n_obs_steps == 1 and no_time_axis else value
+        self._check_observation(history, time_axis=True)
+        return self._stack_cameras(history)
+
     @torch.no_grad()
-    def predict_action_chunk(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
+    def predict_action_chunk(
+        self, batch: dict[str, Tensor], generator: torch.Generator | None = None, **kwargs
+    ) -> Tensor:
         """Algorithm 1, one iteration: s = N/h denoiser calls on the buffer, return the clean chunk
         (B, n_action_steps, A) and roll the buffer. The noisy tail stays internal.
 
         Online (after select_action filled the queues) the stacked history is used; offline, `batch`
-        must already hold (B, n_obs_steps, ...) observations, as a dataloader gives them."""
+        is a dataloader batch of (B, n_obs_steps, ...) observations (`_offline_history`)."""
+        reject_unknown_kwargs("predict_action_chunk", kwargs)
         if self._queues[OBS_STATE]:
-            batch = {k: torch.stack(list(self._queues[k]), dim=1) for k in self._queues if k != ACTION}
+            history = {k: torch.stack(list(q), dim=1) for k, q in self._queues.items() if k != ACTION}
         else:
-            batch = self._stack_cameras(batch)
-        for key, value in batch.items():  # once per chunk: on a GPU this check synchronises
+            history = self._offline_history(batch)
+        for key, value in history.items():  # once per chunk: on a GPU this check synchronises
             if not torch.isfinite(value).all():
                 raise ValueError(f"Observation `{key}` contains NaN or inf; refusing to act on it.")
-        batch_size = batch[OBS_STATE].shape[0]
+        batch_size = history[OBS_STATE].shape[0]
         if self._buffer.batch_size not in (None, batch_size):
             self._buffer.clear()
         model = self._sampling_model()
-        global_cond = model._prepare_global_conditioning(batch)
+        global_cond = model._prepare_global_conditioning(history)
         if self._buffer.sample is None:
-            self._buffer.prime(self._primer(model, batch, global_cond))
-        return self._buffer.advance(model.denoiser(global_cond))
+            self._buffer.prime(self._primer(model, history, global_cond, generator), generator)
+        return self._buffer.advance(model.denoiser(global_cond), generator)
 
-    def _primer(self, model: SDPModel, batch: dict[str, Tensor], global_cond: Tensor) -> Tensor:
+    def _primer(
+        self,
+        model: SDPModel,
+        history: dict[str, Tensor],
+        global_cond: Tensor,
+        generator: torch.Generator | None,
+    ) -> Tensor:
         """Clean (normalised) sequence the buffer starts from (paper Sec. "Initializing the buffer")."""
-        batch_size = batch[OBS_STATE].shape[0]
+        batch_size = history[OBS_STATE].shape[0]
         shape = (batch_size, self.geometry.horizon, self.config.action_feature.shape[0])
         primer = self.config.action_primer
         if primer == "denoise":
-            return model.conditional_sample(batch_size, global_cond=global_cond)
+            return model.conditional_sample(batch_size, global_cond, generator)
         if primer == "constant":
             if torch.isnan(self.state_to_action).any():
                 raise ValueError(
@@ -228,7 +270,7 @@ class SDPPolicy(PreTrainedPolicy):
                     "differ). Use `--policy.action_primer=zero`."
                 )
             scale, offset = self.state_to_action
-            current = batch[OBS_STATE][:, -1] * scale + offset
+            current = history[OBS_STATE][:, -1] * scale + offset  # the newest observation
             return current.unsqueeze(1).expand(shape).contiguous()
         return torch.zeros(shape, device=global_cond.device, dtype=global_cond.dtype)
 
@@ -254,7 +296,7 @@ class SDPPolicy(PreTrainedPolicy):
         """Refuse a checkpoint whose tensors do not fit the config (LeRobot loads non-strictly)."""
         expected = {k: tuple(v.shape) for k, v in model.state_dict().items()}
         with safe_open(model_file, "pt") as f:
-            found = {k: tuple(f.get_slice(k).get_shape()) for k in f}
+            found = {k: tuple(f.get_slice(k).get_shape()) for k in f.keys()}  # noqa: SIM118 (not iterable)
         problems = [f"missing {k}" for k in expected.keys() - found.keys()]
         problems += [f"unexpected {k}" for k in found.keys() - expected.keys()]
         problems += [

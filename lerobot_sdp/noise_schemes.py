@@ -75,12 +75,10 @@ SCHEMES = {
 
 def sample_levels(
     weights: NoiseSchemeWeights, batch_size: int, geometry: ChunkGeometry, schedule: PerSlotSchedule
-) -> tuple[Tensor, Tensor]:
-    """Training timesteps (B, horizon) from the weighted mixture, and the scheme index per sample."""
+) -> Tensor:
+    """Training timesteps (B, horizon) from the weighted mixture: one scheme drawn per sample."""
     w = weights.as_dict()
     active = [name for name in SCHEMES if w[name] > 0]
-    probs = torch.tensor([w[name] for name in active])
-    choice = torch.multinomial(probs, batch_size, replacement=True)
+    choice = torch.multinomial(torch.tensor([w[name] for name in active]), batch_size, replacement=True)
     levels = torch.stack([SCHEMES[name](batch_size, geometry, schedule) for name in active])
-    scheme_index = torch.tensor([list(SCHEMES).index(name) for name in active])[choice]
-    return levels[choice, torch.arange(batch_size)], scheme_index
+    return levels[choice, torch.arange(batch_size)]

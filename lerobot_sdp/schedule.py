@@ -37,7 +37,6 @@ class PerSlotSchedule(nn.Module):
         self.prediction_type = cfg.prediction_type
         self.clip_range = cfg.clip_sample_range if cfg.clip_sample else None
         self.num_train_timesteps = cfg.num_train_timesteps
-        self.num_inference_steps = num_inference_steps
         scheduler.set_timesteps(num_inference_steps)
         timesteps = torch.as_tensor(scheduler.timesteps, dtype=torch.long).flip(0)  # ascending
         self.register_buffer("timestep_table", torch.cat([torch.tensor([-1]), timesteps]), persistent=False)
@@ -78,10 +77,16 @@ class PerSlotSchedule(nn.Module):
         return StepCoefficients(**common, **ddpm_coefficients(abar, abar_prev, t))
 
     def apply_step(
-        self, c: "StepCoefficients", model_output: Tensor, sample: Tensor, noise: Tensor | None = None
+        self,
+        c: "StepCoefficients",
+        model_output: Tensor,
+        sample: Tensor,
+        noise: Tensor | None = None,
+        generator: torch.Generator | None = None,
     ) -> Tensor:
         """x_t -> x_{t_prev} for every slot with k > 0; slots with k = 0 are left untouched
-        (indexing abar at k = 0 would silently wrap to the noisiest level)."""
+        (indexing abar at k = 0 would silently wrap to the noisiest level). DDPM's step noise is
+        ``noise`` when given, else drawn from ``generator``."""
         if self.prediction_type == "epsilon":
             eps = model_output
             x0 = (sample - c.sqrt_one_minus_abar * eps) / c.sqrt_abar
@@ -96,12 +101,18 @@ class PerSlotSchedule(nn.Module):
         if c.eps_coef is not None:
             prev = prev + c.eps_coef * eps
         if c.noise_std is not None:
-            prev = prev + c.noise_std * (torch.randn_like(sample) if noise is None else noise)
+            prev = prev + c.noise_std * (gaussian_like(sample, generator) if noise is None else noise)
         return torch.where(c.active, prev, sample)
 
     def step(self, model_output: Tensor, k: Tensor, sample: Tensor, noise: Tensor | None = None) -> Tensor:
         """One reverse step from per-slot steps-remaining ``k`` (B, T)."""
         return self.apply_step(self.coefficients(k), model_output, sample, noise)
+
+
+def gaussian_like(x: Tensor, generator: torch.Generator | None = None) -> Tensor:
+    """N(0, I) of ``x``'s shape, device and dtype; every draw of a streaming call goes through here so
+    that one ``generator`` reproduces the whole stream (``randn_like`` takes no generator)."""
+    return torch.randn(x.shape, generator=generator, device=x.device, dtype=x.dtype)
 
 
 class StepCoefficients(NamedTuple):

@@ -21,7 +21,7 @@ def test_delta_indices_cover_past_and_all_chunks():
     cfg = tiny_config(n_obs_steps=2, n_action_steps=4, n_chunks=2)  # U-Net factor 2: horizon 10
     assert cfg.observation_delta_indices == [-1, 0]
     assert cfg.action_delta_indices == list(range(-1, 9))
-    assert cfg.drop_n_last_frames == cfg.horizon - 4 - 2 + 1
+    assert cfg.drop_n_last_frames == 3  # the executed chunk of 4 ends on the last frame
     assert cfg.reward_delta_indices is None
 
 

@@ -97,6 +97,102 @@ def test_predict_action_chunk_returns_clean_chunk_only():
     assert chunk.shape == (3, cfg.n_action_steps, 2)
 
 
+@pytest.mark.parametrize("image, n_obs_steps", [(False, 2), (True, 2), (True, 1)])
+def test_offline_chunk_on_a_real_dataset_batch(tmp_path, image, n_obs_steps):
+    """A `lerobot-train` batch (LeRobotDataset -> DataLoader -> SDP's preprocessor, `task` strings,
+    indices and actions included) goes into predict_action_chunk as it goes into LeRobot's DP."""
+    from lerobot.datasets.factory import resolve_delta_timestamps
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
+    from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
+    from lerobot.utils.feature_utils import dataset_to_policy_features
+    from sdp_test_utils import make_tiny_pusht_dataset
+
+    from lerobot_sdp import make_sdp_pre_post_processors
+
+    make_tiny_pusht_dataset(tmp_path / "ds", image=image, n_episodes=1, length=24)
+    features = dataset_to_policy_features(
+        LeRobotDataset("local/tiny_pusht", root=tmp_path / "ds").meta.features
+    )
+    inputs = {k: ft for k, ft in features.items() if k.startswith("observation.")}
+    cfg = tiny_config(
+        n_obs_steps=n_obs_steps,
+        crop_shape=(84, 84) if image else None,
+        input_features=inputs,
+        output_features={"action": features["action"]},
+    )
+    meta = LeRobotDataset("local/tiny_pusht", root=tmp_path / "ds").meta
+    ds = LeRobotDataset(
+        "local/tiny_pusht", root=tmp_path / "ds", delta_timestamps=resolve_delta_timestamps(cfg, meta)
+    )
+    preprocess, _ = make_sdp_pre_post_processors(cfg, meta.stats)
+    batch = preprocess(next(iter(torch.utils.data.DataLoader(ds, batch_size=3))))
+    assert isinstance(batch["task"][0], str) and "action" in batch and "index" in batch
+    if image and n_obs_steps == 1:  # a single-frame image without its time axis, as DP accepts it
+        batch["observation.image"] = batch["observation.image"][:, 0]
+    chunk = SDPPolicy(cfg, dataset_stats=meta.stats).eval().predict_action_chunk(batch)
+    assert chunk.shape == (3, cfg.n_action_steps, 2) and torch.isfinite(chunk).all()
+    dp_cfg = DiffusionConfig(
+        n_obs_steps=n_obs_steps, horizon=16, n_action_steps=4, down_dims=(16, 32), crop_shape=cfg.crop_shape,
+        input_features=inputs, output_features=cfg.output_features, device="cpu",
+        pretrained_backbone_weights=None, use_group_norm=True,
+    )  # fmt: skip
+    dp_chunk = DiffusionPolicy(dp_cfg).eval().predict_action_chunk(batch)  # the same batch suits DP
+    assert dp_chunk.shape == chunk.shape
+
+
+def test_offline_chunk_names_a_batch_without_the_time_axis():
+    cfg = tiny_config(n_obs_steps=2)
+    with pytest.raises(
+        ValueError, match=r"`observation\.state` has shape \(3, 2\), expected \(batch, 2, 2\)"
+    ):
+        SDPPolicy(cfg).eval().predict_action_chunk(observation(cfg, batch_size=3))
+
+
+def rollout(policy, cfg, seed, global_seed, n_steps=12):
+    """Actions over several chunks drawn with one generator seeded `seed`; the global RNG is reseeded
+    from `global_seed` before every step, so a draw that ignores the generator shows up as a
+    difference between two rollouts with different `global_seed`."""
+    policy.reset()
+    gen = torch.Generator().manual_seed(seed)
+    actions = []
+    for i in range(n_steps):
+        torch.manual_seed(1000 * global_seed + i)
+        actions.append(policy.select_action(observation(cfg, seed=i), generator=gen))
+    return torch.stack(actions)
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        dict(action_primer="zero"),  # DDPM: step noise, re-noised past slots, the new tail
+        dict(action_primer="constant", n_obs_steps=3),
+        dict(action_primer="denoise", noise_scheduler_type="DDIM"),
+    ],
+)
+def test_one_generator_reproduces_the_whole_stream(overrides):
+    cfg = tiny_config(**overrides)
+    policy = SDPPolicy(cfg, dataset_stats=PUSHT_STATS).eval()
+    first = rollout(policy, cfg, seed=7, global_seed=0)
+    torch.testing.assert_close(rollout(policy, cfg, seed=7, global_seed=1), first, atol=0, rtol=0)
+    assert not torch.allclose(first, rollout(policy, cfg, seed=8, global_seed=0))
+    # a second policy with the same weights follows the same stream
+    twin = SDPPolicy(cfg, dataset_stats=PUSHT_STATS).eval()
+    twin.load_state_dict(policy.state_dict())
+    torch.testing.assert_close(rollout(twin, cfg, seed=7, global_seed=2), first, atol=0, rtol=0)
+
+
+@pytest.mark.parametrize("method", ["select_action", "predict_action_chunk"])
+def test_unknown_keywords_are_errors_that_name_them(method):
+    cfg = tiny_config()
+    policy = SDPPolicy(cfg).eval()
+    obs = observation(cfg) if method == "select_action" else history(cfg)
+    with pytest.raises(TypeError, match=r"\['temperature'\]"):
+        getattr(policy, method)(obs, temperature=0.5)
+    with pytest.raises(TypeError, match=r"\['noise'\].*generator="):
+        getattr(policy, method)(obs, noise=torch.zeros(2, cfg.horizon, 2))
+
+
 # --- bad input -------------------------------------------------------------------------------
 
 
@@ -152,7 +248,7 @@ def test_constant_primer_starts_from_the_current_state():
     a_min, a_max = torch.tensor(PUSHT_STATS["action"]["min"]), torch.tensor(PUSHT_STATS["action"]["max"])
     norm_state = (raw - s_min) / (s_max - s_min) * 2 - 1
     batch = {"observation.state": norm_state.unsqueeze(1)}
-    primer = policy._primer(policy.model, batch, torch.zeros(1, 1))
+    primer = policy._primer(policy.model, batch, torch.zeros(1, 1), None)
     torch.testing.assert_close(primer[0, 0], ((raw - a_min) / (a_max - a_min) * 2 - 1)[0])
 
 
