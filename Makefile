@@ -1,7 +1,7 @@
 # The two fresh-machine commands of the README.
 #   make main   set up, then run the Push-T main job (data -> train SDP -> lerobot-eval -> summary)
-#   make test   set up, then run the test suite (what CI runs)
-.PHONY: setup main test
+#   make test   set up, lint (ruff check + format check), then run the test suite (what CI runs)
+.PHONY: setup main lint test
 
 setup:
 	bash .ci/setup
@@ -9,7 +9,10 @@ setup:
 main: setup
 	.venv/bin/lerobot-sdp-pusht $(ARGS)
 
+lint: setup
+	.venv/bin/ruff check . && .venv/bin/ruff format --check .
+
 # pytest exits 5 when it collected no test: that must fail CI, not pass as green.
-test: setup
+test: setup lint
 	HF_HUB_OFFLINE=1 WANDB_MODE=disabled MUJOCO_GL=$${MUJOCO_GL:-egl} .venv/bin/python -m pytest -q $(PYTEST_ARGS); \
 	rc=$$?; if [ $$rc -eq 5 ]; then echo "error: pytest collected no tests" >&2; exit 1; fi; exit $$rc

@@ -10,11 +10,12 @@ from types import ModuleType
 
 from lerobot.utils.utils import init_logging
 
-from . import latency, quality
+from . import latency, quality, train_profile
 
 SUBCOMMANDS: dict[str, ModuleType] = {
     "latency": latency,
     "quality": quality,
+    "train-profile": train_profile,
 }
 
 

@@ -1,0 +1,170 @@
+"""Train-step profile: where one `lerobot-train` step of SDP and of LeRobot's DP spends its time.
+
+Builds everything with LeRobot's own factories from a training config (`make_dataset`,
+`make_policy`, `make_pre_post_processors`, `make_optimizer_and_scheduler`, the EpisodeAwareSampler
+and DataLoader settings `lerobot-train` uses) and times each phase of the step the way
+`lerobot-train`'s `update_policy` runs it: data (waiting for the DataLoader), preprocess, forward,
+backward, optimizer (gradient clipping, optimizer and lr-scheduler step), EMA (`policy.update()`,
+SDP only). Both policies share the config's U-Net, batch and data; DP's horizon is SDP's by
+default (the same denoiser input, as in the latency benchmark) or `--dp_horizon`, e.g. LeRobot's
+reference 16. Output: OUTPUT_DIR/train_profile.json and a Markdown table on stdout.
+"""
+
+import argparse
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+REPO = Path(__file__).resolve().parents[2]
+PHASES = ("data", "preprocess", "forward", "backward", "optimizer", "ema")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config_path", type=Path, default=REPO / "configs" / "pusht_state_cpu.json")
+    p.add_argument(
+        "--dataset_root", type=Path, required=True, help="local LeRobotDataset (e.g. the converted zarr)"
+    )
+    p.add_argument("--repo_id", default="local/pusht_keypoints")
+    p.add_argument("--policies", nargs="+", default=["sdp", "diffusion"], choices=["sdp", "diffusion"])
+    p.add_argument("--steps", type=int, default=30, help="timed steps per policy (after --warmup)")
+    p.add_argument("--warmup", type=int, default=5)
+    p.add_argument(
+        "--num_threads", type=int, default=1, help="torch intra-op threads of the training process"
+    )
+    p.add_argument("--num_workers", type=int, default=None, help="DataLoader workers (default: the config's)")
+    p.add_argument("--batch_size", type=int, default=None, help="default: the config's")
+    p.add_argument("--dp_horizon", type=int, default=None, help="default: SDP's horizon for the config")
+    p.add_argument("--output_dir", type=Path, default=Path("outputs/benchmarks/train_profile"))
+
+
+def train_config(args: argparse.Namespace, policy: str):
+    """The config's TrainPipelineConfig; for DP the same U-Net fields under `--policy.type=diffusion`."""
+    import draccus
+    from lerobot.configs.train import TrainPipelineConfig
+
+    raw = json.loads(args.config_path.read_text())
+    overrides = [
+        f"--dataset.repo_id={args.repo_id}",
+        f"--dataset.root={args.dataset_root}",
+        "--wandb.enable=false",
+    ]
+    if args.num_workers is not None:
+        overrides.append(f"--num_workers={args.num_workers}")
+    if args.batch_size is not None:
+        overrides.append(f"--batch_size={args.batch_size}")
+    if policy == "diffusion":
+        shared = ("n_obs_steps", "n_action_steps", "down_dims", "kernel_size", "diffusion_step_embed_dim")
+        shared += ("noise_scheduler_type", "num_train_timesteps", "num_inference_steps", "prediction_type")
+        shared += ("optimizer_lr", "scheduler_warmup_steps")
+        raw["policy"] = {"type": "diffusion", **{k: raw["policy"][k] for k in shared if k in raw["policy"]}}
+        horizon = args.dp_horizon or train_config(args, "sdp").policy.horizon
+        raw["policy"].update(horizon=horizon, pretrained_backbone_weights=None, push_to_hub=False)
+    path = args.output_dir / f"{policy}_config.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(raw))
+    cfg = draccus.parse(TrainPipelineConfig, config_path=str(path), args=overrides)
+    cfg.validate()
+    return cfg
+
+
+@dataclass
+class Timer:
+    seconds: dict
+
+    def __call__(self, phase: str, start: float) -> float:
+        now = time.perf_counter()
+        self.seconds[phase].append(now - start)
+        return now
+
+
+def profile_policy(args: argparse.Namespace, policy_type: str) -> dict:
+    from lerobot.datasets import EpisodeAwareSampler
+    from lerobot.datasets.factory import make_dataset
+    from lerobot.optim.factory import make_optimizer_and_scheduler
+    from lerobot.policies.factory import make_policy, make_pre_post_processors
+
+    cfg = train_config(args, policy_type)
+    dataset = make_dataset(cfg)
+    policy = make_policy(cfg.policy, ds_meta=dataset.meta)
+    preprocessor, _ = make_pre_post_processors(cfg.policy, dataset_stats=dataset.meta.stats)
+    optimizer, scheduler = make_optimizer_and_scheduler(cfg, policy)
+    sampler = EpisodeAwareSampler(
+        dataset.meta.episodes["dataset_from_index"],
+        dataset.meta.episodes["dataset_to_index"],
+        drop_n_last_frames=getattr(cfg.policy, "drop_n_last_frames", 0),
+        shuffle=True,
+        seed=cfg.seed or 0,
+    )
+    loader = torch.utils.data.DataLoader(
+        dataset,
+        batch_size=cfg.batch_size,
+        sampler=sampler,
+        num_workers=cfg.num_workers,
+        prefetch_factor=cfg.prefetch_factor if cfg.num_workers > 0 else None,
+        persistent_workers=cfg.num_workers > 0,
+        drop_last=False,
+    )
+    batches = iter(loader)
+    timer = Timer({phase: [] for phase in PHASES})
+    policy.train()
+    for step in range(args.warmup + args.steps):
+        if step == args.warmup:
+            timer.seconds = {phase: [] for phase in PHASES}
+        t = time.perf_counter()
+        batch = next(batches)
+        t = timer("data", t)
+        batch = preprocessor(batch)
+        t = timer("preprocess", t)
+        loss, _ = policy.forward(batch)
+        t = timer("forward", t)
+        loss.backward()
+        t = timer("backward", t)
+        torch.nn.utils.clip_grad_norm_(policy.parameters(), cfg.optimizer.grad_clip_norm)
+        optimizer.step()
+        optimizer.zero_grad()
+        if scheduler is not None:
+            scheduler.step()
+        t = timer("optimizer", t)
+        if hasattr(policy, "update"):
+            policy.update()
+        timer("ema", t)
+    ms = {phase: 1e3 * sum(v) / len(v) for phase, v in timer.seconds.items()}
+    step_ms = sum(ms.values())
+    return {
+        "policy": policy_type,
+        "horizon": cfg.policy.horizon,
+        "batch_size": cfg.batch_size,
+        "num_workers": cfg.num_workers,
+        "phase_ms": ms,
+        "step_ms": step_ms,
+        "model_ms": step_ms - ms["data"] - ms["preprocess"],
+        "samples_per_s": 1e3 * cfg.batch_size / step_ms,
+    }
+
+
+def markdown(rows: list[dict]) -> str:
+    head = "| policy | horizon | " + " | ".join(f"{p} (ms)" for p in PHASES) + " | step (ms) | samples/s |"
+    lines = [head, "|" + "---|" * (len(PHASES) + 4)]
+    for r in rows:
+        phases = " | ".join(f"{r['phase_ms'][p]:.1f}" for p in PHASES)
+        lines.append(
+            f"| {r['policy']} | {r['horizon']} | {phases} | {r['step_ms']:.1f} | {r['samples_per_s']:.0f} |"
+        )
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> None:
+    torch.set_num_threads(args.num_threads)
+    rows = [profile_policy(args, policy) for policy in args.policies]
+    report = {"num_threads": args.num_threads, "config_path": str(args.config_path), "rows": rows}
+    if {"sdp", "diffusion"} <= {r["policy"] for r in rows}:
+        by = {r["policy"]: r for r in rows}
+        report["sdp_over_dp_model_time"] = by["sdp"]["model_ms"] / by["diffusion"]["model_ms"]
+    (args.output_dir / "train_profile.json").write_text(json.dumps(report, indent=2))
+    print(markdown(rows))
+    if "sdp_over_dp_model_time" in report:
+        ratio = report["sdp_over_dp_model_time"]
+        print(f"SDP / DP model time per step (forward + backward + optimizer + EMA): {ratio:.3f}")
