@@ -10,12 +10,13 @@ from types import ModuleType
 
 from lerobot.utils.utils import init_logging
 
-from . import latency, quality, train_profile
+from . import latency, quality, throughput, train_profile
 
 SUBCOMMANDS: dict[str, ModuleType] = {
     "latency": latency,
     "quality": quality,
     "train-profile": train_profile,
+    "throughput": throughput,
 }
 
 
