@@ -1,9 +1,14 @@
 """Streaming Diffusion Policy for LeRobot. Importing the package registers `--policy.type=sdp` and
 `--env.type=robomimic` (robosuite itself loads only when such an env is built)."""
 
-from .configuration_sdp import SDPConfig
-from .modeling_sdp import SDPPolicy
-from .processor_sdp import make_sdp_pre_post_processors
-from .robomimic import RobomimicEnvConfig
+from . import torchcodec_notice
+
+# First, before anything builds a LeRobot dataset config: LeRobot's torchcodec fallback in one line.
+torchcodec_notice.install()
+
+from .configuration_sdp import SDPConfig  # noqa: E402
+from .modeling_sdp import SDPPolicy  # noqa: E402
+from .processor_sdp import make_sdp_pre_post_processors  # noqa: E402
+from .robomimic import RobomimicEnvConfig  # noqa: E402
 
 __all__ = ["RobomimicEnvConfig", "SDPConfig", "SDPPolicy", "make_sdp_pre_post_processors"]

@@ -69,10 +69,15 @@ def train(train_dir: Path, args: list[str], steps: int, log: Path) -> Path:
     return model_dir
 
 
+def eval_info(eval_dir: Path) -> Path:
+    """The results file of a finished `lerobot-eval` run (its presence means finished)."""
+    return eval_dir / "eval_info.json"
+
+
 def evaluate(model_dir: Path, eval_dir: Path, args: list[str], log: Path) -> dict:
     """`lerobot-eval --policy.path=MODEL_DIR ARGS --output_dir=EVAL_DIR`, skipped when its
     eval_info.json exists. Returns the overall metrics."""
-    info = eval_dir / "eval_info.json"
+    info = eval_info(eval_dir)
     if not info.exists():
         cmd = [lerobot_bin("lerobot-eval"), f"--policy.path={model_dir}", *args, f"--output_dir={eval_dir}"]
         run_logged(cmd, log)

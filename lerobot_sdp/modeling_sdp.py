@@ -199,6 +199,8 @@ class SDPPolicy(PreTrainedPolicy):
         """Pop the next action; when the queue is empty run one streaming step (N/h denoiser calls).
         ``generator`` seeds every random draw of that step (same generator state, same actions)."""
         reject_unknown_kwargs("select_action", kwargs)
+        # lerobot-eval's batch carries `action: None` (and may carry `task`): queue only the inputs
+        batch = {k: v for k, v in batch.items() if k in self.config.input_features}
         self._check_observation(batch, time_axis=False)
         queued = self._queues[OBS_STATE]
         if queued and queued[-1].shape[0] != batch[OBS_STATE].shape[0]:

@@ -280,3 +280,14 @@ def test_two_cameras_condition_the_policy(separate):
     loss.backward()
     action = policy.eval().select_action(observation(cfg, batch_size=3))
     assert torch.isfinite(loss) and action.shape == (3, 2)
+
+
+def test_select_action_takes_lerobot_evals_batch():
+    """lerobot-eval's observation batch carries `action: None` and the task strings: neither may reach
+    the action queue (a queued None broke every evaluation)."""
+    cfg = tiny_config()
+    policy = SDPPolicy(cfg).eval()
+    for _ in range(cfg.n_action_steps + 1):
+        obs = {**observation(cfg), "action": None, "task": ["push the T", "push the T"]}
+        action = policy.select_action(obs)
+        assert isinstance(action, torch.Tensor) and action.shape == (2, 2)

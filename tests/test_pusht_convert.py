@@ -11,7 +11,7 @@ import pytest
 import zarr
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from lerobot_sdp.pusht_convert import (
+from lerobot_sdp.pusht.convert import (
     PUSHT_TASK,
     ConversionError,
     convert_pusht,

@@ -16,7 +16,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 from ..lerobot_cli import evaluate, pusht_eval_args, train, trained_steps
-from ..pusht_data import keypoints_dataset_args
+from ..pusht.data import keypoints_dataset_args
 from .stream_cost import stream_cost
 
 OBS_TYPE = "environment_state_agent_pos"

@@ -32,7 +32,7 @@ import zarr
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from tqdm import tqdm
 
-from .dataset_writing import clear_output_dir, without_datasets_progress_bars
+from ..dataset_writing import clear_output_dir, without_datasets_progress_bars
 
 with warnings.catch_warnings():
     # pygame, imported by gym-pusht, warns that pkg_resources is deprecated: noise for our users.

@@ -4,7 +4,7 @@ local LeRobotDataset) when one is given or found, else the Hugging Face Hub when
 import os
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SHARED_ZARR = REPO.parent / "shared" / "data" / "pusht" / "pusht_cchi_v7_replay.zarr"
 HUB_KEYPOINTS = "lerobot/pusht_keypoints"
 
@@ -28,14 +28,24 @@ def hub_offline() -> bool:
     return os.environ.get("HF_HUB_OFFLINE", "0").lower() in ("1", "true", "yes", "on")
 
 
+def keypoints_root(data_dir: Path) -> Path:
+    """Where `keypoints_dataset_args` converts the zarr to."""
+    return data_dir / "pusht_keypoints"
+
+
+def converted(data_dir: Path) -> bool:
+    """Whether a finished conversion sits in data_dir (it is reused then)."""
+    return (keypoints_root(data_dir) / "meta" / "info.json").exists()
+
+
 def keypoints_dataset_args(zarr: Path | None, data_dir: Path) -> list[str]:
     """lerobot-train's dataset flags for state-based (keypoints) Push-T."""
     zarr = find_zarr(zarr)
     if zarr is not None:
-        from .pusht_convert import convert_pusht
+        from .convert import convert_pusht
 
-        root = data_dir / "pusht_keypoints"
-        if (root / "meta" / "info.json").exists():
+        root = keypoints_root(data_dir)
+        if converted(data_dir):
             print(f"[data] reusing {root}", flush=True)
         else:
             print(f"[data] converting {zarr} -> {root}", flush=True)

@@ -4,10 +4,13 @@
    local keypoints LeRobotDataset; without a zarr, use Hub `lerobot/pusht_keypoints` when online;
 2. train SDP with `lerobot-train --config_path=configs/pusht_state_cpu.json`;
 3. evaluate with `lerobot-eval` on gym-pusht (batched sync envs);
-4. print pc_success, avg_max_reward, the denoiser calls per chunk (counted) and where the videos are.
+4. print pc_success, avg_max_reward, the denoiser calls and latency per chunk, the checkpoint and
+   where lerobot-eval wrote the rollout videos; OUTPUT_DIR/summary.json has all of it.
 
 Stages that already finished are reused with --resume (an interrupted training run resumes from
 its last checkpoint); an existing output directory is never overwritten without --overwrite.
+Each stage's wall time is kept in OUTPUT_DIR/timings.json as soon as it finishes (or stops), so a
+resumed run reports the time its reused stages took in the session that ran them.
 """
 
 import argparse
@@ -15,15 +18,22 @@ import json
 import shutil
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from datetime import datetime
 from pathlib import Path
 
-from .benchmarks.stream_cost import stream_cost
-from .lerobot_cli import CLIError, evaluate, pusht_eval_args, train
-from .pusht_data import NoPushTDataError, keypoints_dataset_args
+import draccus
+from lerobot.configs.policies import PreTrainedConfig
 
-REPO = Path(__file__).resolve().parents[1]
+from ..benchmarks.stream_cost import stream_cost
+from ..lerobot_cli import CLIError, eval_info, evaluate, pusht_eval_args, train, trained_steps
+from .data import NoPushTDataError, converted, keypoints_dataset_args
+
+REPO = Path(__file__).resolve().parents[2]
 OBS_TYPE = "environment_state_agent_pos"
 EVAL_SEED = 100_000  # fixed episode seeds, shared with the quality benchmark
+STAGES = ("data", "train", "eval", "measure")
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -57,34 +67,135 @@ def prepare_output_dir(args: argparse.Namespace) -> None:
     args.output_dir.mkdir(parents=True, exist_ok=True)
 
 
-def run_job(args: argparse.Namespace) -> dict:
-    steps = args.steps or json.loads(args.config_path.read_text())["steps"]
-    t0 = time.monotonic()
+class StageTimings:
+    """Wall time of each stage of one output directory, kept in OUTPUT_DIR/timings.json across sessions.
+
+    A stage's seconds are the time spent doing its work, summed over the sessions that did some: a
+    session that finds the stage finished (reused) adds nothing, one that resumes it (training from its
+    last checkpoint) adds its own time, and a stage that stops (error, Ctrl-C) records the time it had
+    spent. `measure` (the latency per chunk) is measured again in every session: its time is replaced.
+    Each session lists what it did per stage: ran, reused, resumed (after an interruption), ran again
+    (after a finished run, e.g. more --steps), interrupted.
+    """
+
+    FILE = "timings.json"
+
+    def __init__(self, output_dir: Path):
+        self.path = output_dir / self.FILE
+        saved = json.loads(self.path.read_text()) if self.path.exists() else {}
+        self.stage_s: dict[str, float] = saved.get("stage_s", {})
+        self.sessions: list[dict] = saved.get("sessions", [])
+        self.session: dict = {"started": datetime.now().isoformat(timespec="seconds"), "stages": {}}
+        self.sessions.append(self.session)
+        self._start = time.monotonic()
+
+    @property
+    def resumed(self) -> bool:
+        """Whether this run spans more than one session (it was resumed)."""
+        return len(self.sessions) > 1
+
+    @contextmanager
+    def stage(self, name: str, reused: bool = False, replace: bool = False) -> Iterator[None]:
+        if reused:
+            try:
+                yield
+            finally:
+                self.session["stages"][name] = "reused"
+                self.save()
+            return
+        before = 0.0 if replace else self.stage_s.get(name, 0.0)
+        earlier = [s["stages"][name] for s in self.sessions[:-1] if name in s["stages"]]
+        if replace or not earlier:
+            status = "ran"
+        else:
+            status = "resumed" if earlier[-1] == "interrupted" else "ran again"
+        start = time.monotonic()
+        try:
+            yield
+        except BaseException:
+            status = "interrupted"
+            raise
+        finally:
+            self.stage_s[name] = round(before + time.monotonic() - start, 1)
+            self.session["stages"][name] = status
+            self.save()
+
+    def save(self) -> None:
+        self.session["wall_time_s"] = round(time.monotonic() - self._start, 1)
+        self.path.write_text(json.dumps({"stage_s": self.stage_s, "sessions": self.sessions}, indent=2))
+
+    def summary(self) -> dict:
+        stages = {name: self.stage_s[name] for name in STAGES if name in self.stage_s}
+        return {
+            "wall_time_s": round(sum(stages.values()), 1),
+            "train_and_data_time_s": round(stages.get("data", 0.0) + stages.get("train", 0.0), 1),
+            "stage_time_s": stages,
+            "session_wall_time_s": round(time.monotonic() - self._start, 1),
+            "resumed": self.resumed,
+            "sessions": self.sessions,
+        }
+
+
+def sdp_geometry(config: dict, device: str) -> str | None:
+    """The SDP geometry line of a `lerobot-train` JSON config (None for another policy type); the
+    config is built exactly as lerobot-train builds it, so an invalid one fails here, before training."""
+    policy = config.get("policy", {})
+    if policy.get("type") != "sdp":
+        return None
+    g = draccus.decode(PreTrainedConfig, {**policy, "device": device}).geometry
+    return (
+        f"SDP geometry: horizon={g.horizon} ({g.n_past} past + {g.n_chunks} chunks x {g.chunk_len} + "
+        f"{g.n_pad} padding), {g.steps_per_call} denoiser calls per chunk "
+        f"(N = {g.num_inference_steps}, h = {g.n_chunks})."
+    )
+
+
+def rollout_videos(eval_dir: Path) -> list[Path]:
+    """The episode videos lerobot-eval rendered (its first 10 episodes)."""
+    return sorted((eval_dir / "videos").rglob("*.mp4"))
+
+
+def run_job(args: argparse.Namespace, timings: StageTimings) -> dict:
+    config = json.loads(args.config_path.read_text())
+    steps = args.steps or config["steps"]
+    geometry = sdp_geometry(config, args.device)
+    if geometry:
+        print(f"[config] {args.config_path}: {geometry}", flush=True)
+    data_dir, train_dir, eval_dir = (args.output_dir / name for name in ("data", "train", "eval"))
+    logs = args.output_dir / "logs"
+
+    with timings.stage("data", reused=converted(data_dir)):
+        dataset_args = keypoints_dataset_args(args.zarr, data_dir)
     train_args = [
         f"--config_path={args.config_path}",
-        *keypoints_dataset_args(args.zarr, args.output_dir / "data"),
+        *dataset_args,
         f"--save_freq={min(steps, 1000)}",
         f"--policy.device={args.device}",
         "--job_name=sdp_pusht_main",
     ]
-    logs = args.output_dir / "logs"
-    model_dir = train(args.output_dir / "train", train_args, steps, logs / "train.log")
-    t_train = time.monotonic() - t0
+    with timings.stage("train", reused=trained_steps(train_dir) >= steps):
+        model_dir = train(train_dir, train_args, steps, logs / "train.log")
     eval_args = pusht_eval_args(OBS_TYPE, args.eval_episodes, EVAL_SEED, args.device)
-    metrics = evaluate(model_dir, args.output_dir / "eval", eval_args, logs / "eval.log")
-    config = json.loads((model_dir / "config.json").read_text())
+    with timings.stage("eval", reused=eval_info(eval_dir).exists()):
+        metrics = evaluate(model_dir, eval_dir, eval_args, logs / "eval.log")
+    videos = rollout_videos(eval_dir)
+    print(f"[eval] {len(videos)} rollout videos in {eval_dir / 'videos'}", flush=True)
+    with timings.stage("measure", replace=True):
+        cost = stream_cost(model_dir)
+    policy = json.loads((model_dir / "config.json").read_text())
     return {
         "pc_success": metrics["pc_success"],
         "avg_max_reward": metrics["avg_max_reward"],
         "avg_sum_reward": metrics["avg_sum_reward"],
         "n_episodes": metrics["n_episodes"],
-        **stream_cost(model_dir),
-        "num_inference_steps": config["num_inference_steps"] or config["num_train_timesteps"],
-        "n_chunks": config["n_chunks"],
+        **cost,
+        "latency_device": "cpu",
+        "num_inference_steps": policy["num_inference_steps"] or policy["num_train_timesteps"],
+        "n_chunks": policy["n_chunks"],
         "model_dir": str(model_dir),
-        "videos": str(args.output_dir / "eval" / "videos"),
-        "wall_time_s": round(time.monotonic() - t0, 1),
-        "train_and_data_time_s": round(t_train, 1),
+        "videos": str(eval_dir / "videos"),
+        "video_files": [str(v) for v in videos],
+        **timings.summary(),
     }
 
 
@@ -96,8 +207,22 @@ def print_summary(summary: dict, output_dir: Path) -> None:
         f"denoiser calls      {summary['denoiser_calls_per_chunk']:g} per chunk (counted; N = "
         f"{summary['num_inference_steps']}, h = {summary['n_chunks']}; Diffusion Policy: N)"
     )
-    print(f"videos              {summary['videos']}")
-    print(f"summary             {output_dir / 'summary.json'}  ({summary['wall_time_s']:.0f} s in all)")
+    print(
+        f"latency             {summary['latency_per_chunk_ms']:.1f} ms per chunk "
+        f"(batch 1, {summary.get('latency_device', 'cpu')}, after the first chunk)"
+    )
+    print(f"checkpoint          {summary['model_dir']}")
+    n_videos = len(summary.get("video_files", []))
+    print(f"videos              {summary['videos']}  ({n_videos} episodes rendered as .mp4)")
+    stages = ", ".join(f"{name} {s:.0f} s" for name, s in summary["stage_time_s"].items())
+    resumed = ""
+    if summary["resumed"]:
+        this = summary["sessions"][-1]["stages"]
+        resumed = f"; resumed in session {len(summary['sessions'])}: " + ", ".join(
+            f"{name} {status}" for name, status in this.items()
+        )
+    print(f"time                {summary['wall_time_s']:.0f} s in all ({stages}{resumed})")
+    print(f"summary             {output_dir / 'summary.json'}")
 
 
 def main(argv=None) -> None:
@@ -106,9 +231,11 @@ def main(argv=None) -> None:
         sys.exit(f"error: config {args.config_path} not found; pass --config_path (see the repo's configs/).")
     prepare_output_dir(args)
     try:
-        summary = run_job(args)
+        summary = run_job(args, StageTimings(args.output_dir))
     except (CLIError, NoPushTDataError) as e:
         sys.exit(f"error: {e}")
+    except draccus.utils.DraccusException as e:
+        sys.exit(f"error: {args.config_path}: invalid policy config: {e}")
     (args.output_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     print_summary(summary, args.output_dir)
 
