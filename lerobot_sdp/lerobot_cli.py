@@ -6,6 +6,7 @@ finished training run is reused, an interrupted one resumes from its last checkp
 """
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -20,13 +21,24 @@ def lerobot_bin(name: str) -> str:
     return str(Path(sys.executable).parent / name)
 
 
+# One torch thread per LeRobot process unless the caller chose otherwise: with one DataLoader worker
+# beside it, data loading and the update each get a core of a small machine, and no OpenMP pool
+# spin-waits for a core another process holds (docs/benchmarks.md, "Training throughput").
+THREAD_DEFAULTS = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+def subprocess_env() -> dict[str, str]:
+    return THREAD_DEFAULTS | dict(os.environ)
+
+
 def run_logged(cmd: list[str], log: Path, echo: bool = True) -> None:
     """Run a command, echoing its output and appending it to `log`."""
     log.parent.mkdir(parents=True, exist_ok=True)
     print(f"[run] {' '.join(cmd)}\n[log] {log}", flush=True)
+    env = subprocess_env()
     with (
         log.open("a") as f,
-        subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) as proc,
+        subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env) as proc,
     ):
         for line in proc.stdout:
             if echo:

@@ -2,9 +2,11 @@
 
 import json
 
+import pytest
 from sdp_test_utils import make_tiny_pusht_dataset
 
 from lerobot_sdp.benchmarks import cli
+from lerobot_sdp.benchmarks.curves import checkpoint_steps, episode_stats, step_logs, wall_time_at
 from lerobot_sdp.benchmarks.quality import (
     BUDGETS,
     PAPER_SCHEMES,
@@ -29,6 +31,8 @@ def test_tiny_comparison_runs_resumes_and_reports(tmp_path, capsys):
         "local/tiny_pusht",
         "--dataset_root",
         str(tmp_path / "data"),
+        "--curve_every",
+        "1",
     ]
     cli.main(argv)
     report = json.loads((tmp_path / "q" / "results.json").read_text())
@@ -41,6 +45,11 @@ def test_tiny_comparison_runs_resumes_and_reports(tmp_path, capsys):
     for row in rows.values():
         assert row["n_episodes"] == 2 and 0 <= row["avg_max_reward"] <= 1 and row["train_wall_s"] > 0
     assert "| sdp_h4 |" in (tmp_path / "q" / "results.md").read_text()
+    for row in rows.values():  # a checkpoint per step, each evaluated on the same episodes
+        assert [p["step"] for p in row["curve"]] == [1, 2]
+        assert all(p["n_episodes"] == 2 and p["train_wall_s"] >= 0 for p in row["curve"])
+        assert row["curve"][-1]["avg_max_reward"] == row["avg_max_reward"]  # the last point is the run's eval
+    assert (tmp_path / "q" / "curves.png").stat().st_size > 10_000
     # the same command again resumes: nothing is retrained, the status says so
     capsys.readouterr()
     cli.main([*argv, "--status"])
@@ -101,3 +110,41 @@ def test_steps_flag_is_a_labelled_reduced_budget():
     assert name == "cpu_3000steps" and budget.steps == budget.ablation_steps == 3000
     assert budget.batch_size == BUDGETS["cpu"].batch_size  # everything else stays the budget's
     assert resolve_budget(parser.parse_args(["quality", "--budget", "cpu"])) == ("cpu", BUDGETS["cpu"])
+
+
+def test_wall_time_skips_the_stop_between_sessions(tmp_path):
+    """Two sessions of one run, stopped for an hour after step 200: the hour is not training."""
+    log = tmp_path / "train.log"
+    lines = [
+        "INFO 2026-11-23 10:00:10 ot_train.py:641 step:100 smpl:6K updt_s:0.1 data_s:0.1",
+        "INFO 2026-11-23 10:00:20 ot_train.py:641 step:200 smpl:13K updt_s:0.1 data_s:0.1",
+        "INFO 2026-11-23 11:00:20 ot_train.py:641 step:300 smpl:19K updt_s:0.1 data_s:0.1",
+        "INFO 2026-11-23 11:00:30 ot_train.py:641 step:400 smpl:26K updt_s:0.1 data_s:0.1",
+        "INFO 2026-11-23 11:00:40 ot_train.py:641 step:1.5K smpl:96K updt_s:0.1 data_s:0.1",
+    ]
+    log.write_text("\n".join(lines) + "\n")
+    marks = step_logs(log)
+    assert [s for _, s in marks] == [100, 200, 300, 400, 1500]
+    # 0.1 s per step everywhere it was measured; steps 0-100 and 200-300 charged at that rate
+    assert wall_time_at(marks, 400) == pytest.approx(40.0)
+    assert wall_time_at(marks, 200) == pytest.approx(20.0)
+
+
+def test_episode_stats_gives_standard_errors(tmp_path):
+    info = {
+        "overall": {"avg_max_reward": 0.5, "pc_success": 50.0},
+        "per_task": [
+            {"metrics": {"max_rewards": [0.0, 1.0, 0.5, 0.5], "successes": [False, True, True, False]}}
+        ],
+    }
+    (tmp_path / "eval_info.json").write_text(json.dumps(info))
+    stats = episode_stats(tmp_path)
+    assert stats["avg_max_reward"] == pytest.approx(0.5) and stats["n_episodes"] == 4
+    assert stats["avg_max_reward_se"] == pytest.approx((1 / 6) ** 0.5 / 2)  # sample std / sqrt(n)
+    assert stats["pc_success"] == pytest.approx(50.0) and stats["pc_success_se"] == pytest.approx(25.0)
+
+
+def test_checkpoint_steps_lists_multiples_only(tmp_path):
+    for name in ("000500", "001000", "001500", "002000", "last"):
+        (tmp_path / "checkpoints" / name).mkdir(parents=True)
+    assert checkpoint_steps(tmp_path, 1000) == [1000, 2000]

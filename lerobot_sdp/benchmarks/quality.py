@@ -17,6 +17,7 @@ from pathlib import Path
 
 from ..lerobot_cli import evaluate, pusht_eval_args, train, trained_steps
 from ..pusht.data import keypoints_dataset_args
+from .curves import checkpoint_steps, episode_stats, plot, step_logs, wall_time_at
 from .stream_cost import stream_cost
 
 OBS_TYPE = "environment_state_agent_pos"
@@ -141,9 +142,16 @@ def run_dir(output_dir: Path, run: Run) -> Path:
 
 
 def execute(
-    run: Run, output_dir: Path, data_args: list[str], common: list[str], budget: Budget, device: str
+    run: Run,
+    output_dir: Path,
+    data_args: list[str],
+    common: list[str],
+    budget: Budget,
+    device: str,
+    curve_every: int | None = None,
 ) -> dict:
-    """Train (or resume, or reuse) and evaluate one run; returns its row."""
+    """Train (or resume, or reuse) and evaluate one run, and with `curve_every` every K-step
+    checkpoint of it on the same episodes; returns its row."""
     model_root = output_dir / "runs" / run.model_run
     timing_file = model_root / "timing.json"
     timing = json.loads(timing_file.read_text()) if timing_file.exists() else {"train_wall_s": 0.0}
@@ -159,17 +167,28 @@ def execute(
         pusht_eval_args(OBS_TYPE, budget.n_episodes, EVAL_SEED, device, budget.episode_length) + overrides
     )
     here = run_dir(output_dir, run)
-    metrics = evaluate(model_dir, here / "eval", eval_args, here / "eval.log")
+    evaluate(model_dir, here / "eval", eval_args, here / "eval.log")
     cost = stream_cost(model_dir, overrides=run.eval_overrides)
-    return {
-        "run": run.name,
-        "pc_success": metrics["pc_success"],
-        "avg_max_reward": metrics["avg_max_reward"],
-        "n_episodes": metrics["n_episodes"],
-        "steps": run.steps,
-        **cost,
-        "train_wall_s": round(timing["train_wall_s"], 1),
-    }
+    row = {"run": run.name, **episode_stats(here / "eval"), "steps": run.steps, **cost}
+    row["train_wall_s"] = round(timing["train_wall_s"], 1)
+    if curve_every:
+        row["curve"] = curve(model_root, here, eval_args, curve_every, run.steps)
+    return row
+
+
+def curve(model_root: Path, here: Path, eval_args: list[str], every: int, final_step: int) -> list[dict]:
+    """Every saved K-step checkpoint evaluated on the run's episodes (the last is the run's eval)."""
+    marks = step_logs(model_root / "train.log")
+    points = []
+    for step in checkpoint_steps(model_root / "train", every):
+        eval_dir = here / "eval" if step == final_step else here / "curve" / f"{step:06d}"
+        model_dir = model_root / "train" / "checkpoints" / f"{step:06d}" / "pretrained_model"
+        evaluate(model_dir, eval_dir, eval_args, eval_dir.parent / f"{eval_dir.name}.log")
+        wall = wall_time_at(marks, step)
+        points.append(
+            {"step": step, "train_wall_s": round(wall, 1) if wall else 0.0, **episode_stats(eval_dir)}
+        )
+    return points
 
 
 def status(runs: list[Run], output_dir: Path) -> list[str]:
@@ -193,7 +212,7 @@ def markdown(rows: dict[str, dict], budget_name: str, budget: Budget) -> str:
 
     def line(name, row, paper=""):
         return (
-            f"| {name} | {row['avg_max_reward']:.3f} | {row['pc_success']:.1f} | {paper} | "
+            f"| {name} | {with_se(row, 'avg_max_reward', 3)} | {with_se(row, 'pc_success', 1)} | {paper} | "
             f"{row['denoiser_calls_per_chunk']:g} | {row['latency_per_chunk_ms']:.1f} | "
             f"{row['train_wall_s']:.0f} | "
             f"{row['steps']} | {row['n_episodes']} |"
@@ -208,7 +227,25 @@ def markdown(rows: dict[str, dict], budget_name: str, budget: Budget) -> str:
             f"primer_{k}": v for k, v in PAPER_PRIMERS.items()
         }
         out += [line(n, rows[n], f"{paper[n]:.2f}") for n in ablations]
+    curves = [n for n in rows if rows[n].get("curve")]
+    if curves:
+        out += ["", "### Learning curves (every checkpoint on the same episodes)", ""]
+        out += [
+            "| run | step | train wall (min) | avg_max_reward | pc_success | episodes |",
+            "|" + "---|" * 6,
+        ]
+        out += [
+            f"| {n} | {p['step']} | {p['train_wall_s'] / 60:.1f} | {with_se(p, 'avg_max_reward', 3)} | "
+            f"{with_se(p, 'pc_success', 1)} | {p['n_episodes']} |"
+            for n in curves
+            for p in rows[n]["curve"]
+        ]
     return "\n".join(out) + "\n"
+
+
+def with_se(row: dict, key: str, digits: int) -> str:
+    value = f"{row[key]:.{digits}f}"
+    return f"{value} ± {row[key + '_se']:.{digits}f}" if key + "_se" in row else value
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -229,6 +266,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=int,
         default=None,
         help="train every run this many steps instead of the budget's (a reduced budget, labelled so)",
+    )
+    parser.add_argument(
+        "--curve_every",
+        type=int,
+        default=None,
+        help="save a checkpoint every K steps, evaluate each on the same episodes (curves.png)",
     )
 
 
@@ -261,18 +304,24 @@ def run(args: argparse.Namespace) -> dict:
     common = [
         f"--batch_size={budget.batch_size}",
         "--seed=1000",
-        "--num_workers=0",
+        "--num_workers=1",
         "--wandb.enable=false",
-        f"--save_freq={max(1, min(budget.steps, 2000))}",
+        f"--save_freq={args.curve_every or max(1, min(budget.steps, 2000))}",
         "--log_freq=200",
     ]
     results_file = output_dir / "results.json"
     rows = json.loads(results_file.read_text())["rows"] if results_file.exists() else {}
     for r in selected:
-        rows[r.name] = execute(r, output_dir, data_args, common, budget, args.device)
+        rows[r.name] = execute(r, output_dir, data_args, common, budget, args.device, args.curve_every)
         report = {"budget": budget_name, "settings": asdict(budget), "eval_seed": EVAL_SEED, "rows": rows}
         results_file.write_text(json.dumps(report, indent=2))
         (output_dir / "results.md").write_text(markdown(rows, budget_name, budget))
+        if args.curve_every:
+            plot(
+                rows,
+                output_dir / "curves.png",
+                f"Push-T keypoints, budget {budget_name}, {budget.n_episodes} episodes per point",
+            )
         print("\n".join(status(selected, output_dir)), flush=True)
     print((output_dir / "results.md").read_text())
     return report

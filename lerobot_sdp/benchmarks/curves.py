@@ -1,0 +1,118 @@
+"""Learning curves for the quality benchmark (`lerobot-sdp-bench quality --curve_every K`).
+
+`lerobot-train` saves a checkpoint every K steps; each one is evaluated by `lerobot-eval` on the
+run's fixed episode seeds, so every point of every policy's curve sees the same episodes. Training
+wall time at a checkpoint is read from `lerobot-train`'s own timestamped step logs: the intervals
+between consecutive step logs of one process are summed, and steps no interval covers (the first
+`log_freq` steps of each process, resumes) are charged at the run's median seconds per step, so
+time spent stopped between sessions never counts.
+"""
+
+import itertools
+import json
+import math
+import re
+import statistics
+from datetime import datetime
+from pathlib import Path
+
+STEP_LOG = re.compile(r"(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d) .*?\bstep:(\d+(?:\.\d+)?[KM]?) ")
+
+
+def parse_step(token: str) -> int:
+    scale = {"K": 1_000, "M": 1_000_000}.get(token[-1], 1)
+    return round(float(token.rstrip("KM")) * scale)
+
+
+def step_logs(train_log: Path) -> list[tuple[datetime, int]]:
+    if not train_log.exists():
+        return []
+    marks = []
+    for line in train_log.read_text(errors="replace").splitlines():
+        if match := STEP_LOG.search(line):
+            marks.append((datetime.strptime(match[1], "%Y-%m-%d %H:%M:%S"), parse_step(match[2])))
+    return marks
+
+
+def wall_time_at(marks: list[tuple[datetime, int]], step: int) -> float | None:
+    """Training seconds spent to reach `step` (None without two step logs to measure a rate)."""
+    intervals = []
+    for (t0, s0), (t1, s1) in itertools.pairwise(marks):
+        if s1 > s0 and t1 >= t0:
+            intervals.append((s0, s1, (t1 - t0).total_seconds()))
+    if not intervals:
+        return None
+    per_step = statistics.median(d / (s1 - s0) for s0, s1, d in intervals)
+    # a gap far slower than the median is a stop between sessions, not training
+    counted = [(s0, s1, d) for s0, s1, d in intervals if d <= 5 * per_step * (s1 - s0) and s1 <= step]
+    covered = sum(s1 - s0 for s0, s1, _ in counted)
+    return sum(d for *_, d in counted) + max(0, step - covered) * per_step
+
+
+def checkpoint_steps(train_dir: Path, every: int) -> list[int]:
+    """Saved checkpoints whose step is a multiple of `every`, ascending."""
+    root = train_dir / "checkpoints"
+    steps = [int(p.name) for p in root.iterdir() if p.name.isdigit()] if root.exists() else []
+    return sorted(s for s in steps if s % every == 0)
+
+
+def episode_stats(eval_dir: Path) -> dict:
+    """avg_max_reward with its standard error over episodes, pc_success with its binomial s.e."""
+    info = json.loads((eval_dir / "eval_info.json").read_text())
+    max_rewards, successes = [], []
+    for task in info.get("per_task", []):
+        max_rewards += task["metrics"]["max_rewards"]
+        successes += task["metrics"]["successes"]
+    n = len(max_rewards)
+    overall = info["overall"]
+    if n < 2:
+        return {
+            "avg_max_reward": overall["avg_max_reward"],
+            "pc_success": overall["pc_success"],
+            "n_episodes": n,
+        }
+    p = sum(map(bool, successes)) / n
+    return {
+        "avg_max_reward": statistics.fmean(max_rewards),
+        "avg_max_reward_se": statistics.stdev(max_rewards) / math.sqrt(n),
+        "pc_success": 100 * p,
+        "pc_success_se": 100 * math.sqrt(p * (1 - p) / n),
+        "n_episodes": n,
+    }
+
+
+def plot(rows: dict[str, dict], path: Path, title: str) -> None:
+    """avg_max_reward and pc_success against training steps and training wall time, one line per
+    policy, the evaluation latency per chunk in the legend."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 2, figsize=(11, 7.5), sharey="row")
+    for name, row in rows.items():
+        curve = row.get("curve") or []
+        if not curve:
+            continue
+        calls, ms = row["denoiser_calls_per_chunk"], row["latency_per_chunk_ms"]
+        label = f"{name} ({calls:g} calls, {ms:.0f} ms / chunk at batch 1)"
+        for col, x_key in enumerate(("step", "train_wall_s")):
+            xs = [p[x_key] / (1 if x_key == "step" else 60) for p in curve]
+            for r, (y_key, se_key) in enumerate(
+                (("avg_max_reward", "avg_max_reward_se"), ("pc_success", "pc_success_se"))
+            ):
+                ys = [p[y_key] for p in curve]
+                errs = [p.get(se_key, 0.0) for p in curve]
+                axes[r, col].errorbar(xs, ys, yerr=errs, marker="o", capsize=3, label=label)
+    for col, xlabel in enumerate(("training steps", "training wall time (min)")):
+        axes[1, col].set_xlabel(xlabel)
+    axes[0, 0].set_ylabel("avg_max_reward")
+    axes[1, 0].set_ylabel("pc_success (%)")
+    for ax in axes.flat:
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=8, loc="lower right")
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
