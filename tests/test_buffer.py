@@ -1,7 +1,12 @@
-"""Streaming invariants, observed through the policy's real U-Net calls."""
+"""Streaming invariants, observed through the policy's real U-Net calls. The buffer's contents are
+pinned in test_buffer_contents.py."""
+
+import math
 
 import pytest
 import torch
+from diffusers import DDIMScheduler
+from lerobot.configs import NormalizationMode
 from sdp_test_utils import PUSHT_STATS, history, observation, tiny_config
 
 from lerobot_sdp import SDPPolicy
@@ -64,22 +69,6 @@ def test_first_call_cost_follows_the_primer(primer, extra):
     assert len(calls) == 2 * s + extra * n
 
 
-def test_past_slots_are_renoised_to_chunk0_level():
-    """After a shift the past-action slots hold executed actions noised to chunk 0's level, as in
-    training (a clean-but-labelled-noisy past slot was a bug in the authors' code)."""
-    cfg = tiny_config(n_obs_steps=3, num_inference_steps=10, prediction_type="sample", clip_sample=False)
-    policy = SDPPolicy(cfg).eval()
-    g = policy.geometry
-    target = torch.zeros(1, g.horizon, 2)
-    policy.ema_model.unet.forward = lambda x, t, global_cond=None: target.expand(x.shape[0], -1, -1)
-    torch.manual_seed(0)
-    policy.select_action(observation(cfg, batch_size=4096))
-    past = policy._buffer.sample[:, : g.n_past]
-    abar = policy.model.schedule.alpha_bar(policy.model.schedule.train_timesteps(g.start_levels[: g.n_past]))
-    # clean value 0 noised to chunk 0's level: std = sqrt(1 - abar)
-    torch.testing.assert_close(past.std(dim=0), (1 - abar).sqrt().expand(-1, 2), atol=0.05, rtol=0)
-
-
 def test_reset_and_batch_size_change_start_a_new_stream():
     cfg = tiny_config()
     policy = SDPPolicy(cfg).eval()
@@ -90,3 +79,70 @@ def test_reset_and_batch_size_change_start_a_new_stream():
     policy.select_action(observation(cfg, batch_size=2))
     action = policy.select_action(observation(cfg, batch_size=5))  # mid-chunk batch change
     assert action.shape == (5, 2) and policy._buffer.batch_size == 5
+
+
+# Raw statistics that differ between state and action in every field, so that a primer that skipped
+# a conversion (or used the wrong statistic) lands elsewhere.
+PRIMER_STATS = {
+    "observation.state": {
+        "min": [10.0, 40.0],
+        "max": [490.0, 500.0],
+        "mean": [240.0, 270.0],
+        "std": [110.0, 95.0],
+    },
+    "action": {"min": [5.0, 20.0], "max": [515.0, 505.0], "mean": [255.0, 250.0], "std": [90.0, 105.0]},
+}
+
+
+def textbook_normalise(raw, stats, mode):
+    s = {k: torch.tensor(v) for k, v in stats.items()}
+    if mode is NormalizationMode.MIN_MAX:
+        return 2 * (raw - s["min"]) / (s["max"] - s["min"]) - 1
+    return (raw - s["mean"]) / s["std"]
+
+
+@pytest.mark.parametrize(
+    "state_mode, action_mode",
+    [
+        (NormalizationMode.MIN_MAX, NormalizationMode.MIN_MAX),
+        (NormalizationMode.MEAN_STD, NormalizationMode.MEAN_STD),
+        (NormalizationMode.MEAN_STD, NormalizationMode.MIN_MAX),
+    ],
+)
+def test_constant_primer_starts_from_the_newest_observation(state_mode, action_mode):
+    """With To = 3 observations of different states, the executed first chunk is the *newest* state in
+    action space, computed here with the textbook formulas from the raw statistics.
+
+    The denoiser predicts zero noise and every chunk is one DDIM step (h = N), so chunk 0 is primed at
+    k = 1 (t = 0) and its single step returns primer + sqrt((1 - abar_0) / abar_0) z: the primer, up to
+    noise of std 0.025 that averages out over the batch."""
+    cfg = tiny_config(
+        n_obs_steps=3,
+        n_action_steps=1,
+        n_chunks=10,
+        num_inference_steps=10,
+        noise_scheduler_type="DDIM",
+        prediction_type="epsilon",
+        clip_sample=False,
+        action_primer="constant",
+        normalization_mapping={"STATE": state_mode, "ACTION": action_mode},
+    )
+    policy = SDPPolicy(cfg, dataset_stats=PRIMER_STATS).eval()
+    policy.ema_model.unet.forward = lambda x, t, global_cond=None: torch.zeros_like(x)
+    raw_states = torch.tensor([[60.0, 460.0], [250.0, 120.0], [420.0, 300.0]])  # oldest .. newest
+    batch = 2048
+    norm_states = textbook_normalise(raw_states, PRIMER_STATS["observation.state"], state_mode)
+    obs = {
+        "observation.state": norm_states.expand(batch, -1, -1),
+        "observation.environment_state": torch.rand(batch, 3, 16),
+    }
+    chunk = policy.predict_action_chunk(obs, generator=torch.Generator().manual_seed(0))
+    assert chunk.shape == (batch, 1, 2)
+    as_actions = textbook_normalise(raw_states, PRIMER_STATS["action"], action_mode)  # (To, A)
+    abar0 = float(DDIMScheduler(num_train_timesteps=100, beta_schedule="squaredcos_cap_v2").alphas_cumprod[0])
+    tol = 5 * math.sqrt((1 - abar0) / abar0 / batch)
+    mean = chunk[:, 0].double().mean(0).float()
+    assert (mean - as_actions[-1]).abs().max() < tol, (
+        f"primer {mean.tolist()}, newest {as_actions[-1].tolist()}"
+    )
+    assert ((as_actions[:-1] - as_actions[-1]).abs().amax(-1) > 100 * tol).all()  # older ones are far

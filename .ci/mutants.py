@@ -1,0 +1,532 @@
+#!/usr/bin/env python
+"""Mutation check of the streaming core: does the test suite notice single-line bugs?
+
+    .venv/bin/python .ci/mutants.py                 # every mutant (or: make mutation)
+    .venv/bin/python .ci/mutants.py --list          # check the list against the sources, print it
+    .venv/bin/python .ci/mutants.py --only B04,S11  # some of them
+
+Each mutant is one textual change (file, exact original text, replacement) to buffer.py,
+schedule.py, geometry.py, noise_schemes.py (and the primer lines of modeling_sdp.py). The script
+copies the package and its tests to a temporary directory (the working tree is never modified, so
+an interrupted run leaves nothing behind), checks that the unmutated copy passes, then applies one
+mutant at a time to the copy and runs the core tests with ``-x -q``. A mutant is *killed* when
+the tests fail, *survived* when they pass.
+
+Mutants marked ``equivalent`` cannot change behaviour (the reason is given); they are run anyway, to
+show that they survive. The exit code is 1 when a behaviour-changing mutant survives or an
+"equivalent" one is killed (the equivalence claim was wrong), 2 when the list no longer matches
+the sources (an original text is missing or ambiguous) or the unmutated copy fails its tests.
+Reports: <out>/report.json and <out>/report.md (default outputs/mutants/, git-ignored).
+"""
+
+import argparse
+import json
+import os
+import queue
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+PKG = "lerobot_sdp"
+COPIED = [PKG, "tests", "pyproject.toml", "lerobot_policy_sdp.py"]
+# Order matters only for speed (-x stops at the first failure): the buffer-contents tests kill most
+# mutants of every module within seconds, the policy-level files are the slowest.
+CORE_TESTS = [
+    "tests/test_buffer_contents.py",
+    "tests/test_geometry.py",
+    "tests/test_schedule.py",
+    "tests/test_noise_schemes.py",
+    "tests/test_buffer.py",
+    "tests/test_modeling_sdp.py",
+]
+_buffer_tests = {p.relative_to(REPO).as_posix() for p in (REPO / "tests").glob("test_buffer*.py")}
+CORE_TESTS += sorted(_buffer_tests - set(CORE_TESTS))  # any later tests/test_buffer*.py
+
+
+@dataclass(frozen=True)
+class Mutant:
+    id: str
+    file: str  # relative to lerobot_sdp/
+    original: str  # must occur exactly once in the file
+    replacement: str
+    description: str
+    equivalent: str | None = None  # why it cannot change behaviour, for semantically equivalent mutants
+
+
+M = Mutant
+MUTANTS = [
+    # --- buffer.py: shift, noise of primed / appended / past slots, executed slice, plan -------------
+    M("B01", "buffer.py",
+      "kept = sample[:, g.chunk_len : g.n_past + g.n_future]",
+      "kept = sample[:, g.chunk_len - 1 : g.n_past + g.n_future - 1]",
+      "shift by Tb - 1 slots instead of one chunk"),
+    M("B02", "buffer.py",
+      "kept = sample[:, g.chunk_len : g.n_past + g.n_future]",
+      "kept = sample[:, : g.n_past + g.n_future - g.chunk_len]",
+      "buffer not shifted at all"),
+    M("B03", "buffer.py",
+      "kept = sample[:, g.chunk_len : g.n_past + g.n_future]",
+      "kept = sample[:, g.chunk_len + 1 : g.n_past + g.n_future + 1]",
+      "shift by Tb + 1 slots (reads a padding slot, or runs off the end)"),
+    M("B04", "buffer.py",
+      "past = a * past + b * gaussian_like(past, generator)",
+      "past = past",
+      "past slots left clean but labelled noisy (the authors' bug)"),
+    M("B05", "buffer.py",
+      "a, b = start.sqrt_abar[: g.n_past], start.sqrt_one_minus_abar[: g.n_past]",
+      "a, b = start.sqrt_abar[-1:], start.sqrt_one_minus_abar[-1:]",
+      "past slots re-noised to level N (the last slot's) instead of chunk 0's"),
+    M("B06", "buffer.py",
+      "self.sample = self._shift(sample, plan[0], generator)",
+      "self.sample = self._shift(sample, plan[-1], generator)",
+      "past slots re-noised to the last step's level (k = 1) instead of chunk 0's start level"),
+    M("B07", "buffer.py",
+      "past = a * past + b * gaussian_like(past, generator)",
+      "past = b * past + a * gaussian_like(past, generator)",
+      "past re-noise with signal and noise scales swapped"),
+    M("B08", "buffer.py",
+      "tail = gaussian_like(sample[:, : g.chunk_len + g.n_pad], generator)",
+      "tail = torch.zeros_like(sample[:, : g.chunk_len + g.n_pad])",
+      "appended chunk is zeros, not N(0, I)"),
+    M("B09", "buffer.py",
+      "tail = gaussian_like(sample[:, : g.chunk_len + g.n_pad], generator)",
+      "tail = sample[:, g.horizon - g.chunk_len - g.n_pad :]",
+      "appended chunk reuses the stale old last chunk instead of fresh noise"),
+    M("B10", "buffer.py",
+      "tail = gaussian_like(sample[:, : g.chunk_len + g.n_pad], generator)",
+      "tail = gaussian_like(sample[:, : g.chunk_len], generator)",
+      "padding slots not re-appended (buffer shrinks)"),
+    M("B11", "buffer.py",
+      "chunk = sample[:, self.geometry.executed]",
+      "chunk = sample[:, : self.geometry.chunk_len]",
+      "executed chunk read from slot 0, ignoring the past slots"),
+    M("B12", "buffer.py",
+      "self.schedule.add_noise(primer, gaussian_like(primer, generator), t)",
+      "self.schedule.add_noise(primer, torch.zeros_like(primer), t)",
+      "primer scaled to its levels but carries no noise"),
+    M("B13", "buffer.py",
+      "self.sample = self.schedule.add_noise(primer, gaussian_like(primer, generator), t)",
+      "self.sample = gaussian_like(primer, generator)",
+      "buffer starts from pure noise, the primer is ignored"),
+    M("B14", "buffer.py",
+      "t = self._call_plan(primer.device)[0].timesteps",
+      "t = self._call_plan(primer.device)[-1].timesteps",
+      "primer noised to the last step's levels instead of the start levels"),
+    M("B15", "buffer.py",
+      "schedule.coefficients((k_start - j).clamp(min=0))",
+      "schedule.coefficients((k_start - j - 1).clamp(min=0))",
+      "every reverse step one level too low (plan off by one)"),
+    M("B16", "buffer.py",
+      "schedule.coefficients((k_start - j).clamp(min=0))",
+      "schedule.coefficients(k_start - j)",
+      "clamp removed from the reverse plan",
+      equivalent="k_start - j >= 1 for every planned step: a streaming call starts at >= s and runs s "
+      "steps, the full denoise starts at N and runs N"),
+    M("B17", "buffer.py",
+      "reverse_plan(self.schedule, k_start, self.geometry.steps_per_call)",
+      "reverse_plan(self.schedule, k_start, self.geometry.steps_per_call - 1)",
+      "one denoiser call short per chunk (executed chunk left at k = 1)"),
+    M("B18", "buffer.py",
+      "past = a * past + b * gaussian_like(past, generator)",
+      "past = a * past + b * gaussian_like(past)",
+      "past re-noise drawn from the global RNG, not the generator"),
+    # --- geometry.py: staircase, slot chunks, padding, steps per call, executed slice -----------------
+    M("G01", "geometry.py",
+      "return (self.slot_chunk + 1) * self.steps_per_call",
+      "return self.slot_chunk * self.steps_per_call + 1",
+      "chunk i starts at the bottom of its band (i*s + 1) instead of (i+1)*s"),
+    M("G02", "geometry.py",
+      "return (self.slot_chunk + 1) * self.steps_per_call",
+      "return (self.slot_chunk + 1) * self.steps_per_call - 1",
+      "start levels one step too low"),
+    M("G03", "geometry.py",
+      "torch.zeros(self.n_past, dtype=torch.long),",
+      "torch.ones(self.n_past, dtype=torch.long),",
+      "past slots labelled chunk 1 instead of chunk 0"),
+    M("G04", "geometry.py",
+      "torch.full((self.n_pad,), self.n_chunks - 1, dtype=torch.long),",
+      "torch.zeros(self.n_pad, dtype=torch.long),",
+      "padding slots labelled chunk 0 instead of the last chunk"),
+    M("G05", "geometry.py",
+      "future = torch.arange(self.n_future) // self.chunk_len",
+      "future = torch.arange(self.n_future) // self.n_chunks",
+      "future slots grouped into chunks by h instead of Tb"),
+    M("G06", "geometry.py",
+      "return -(-unpadded // self.downsampling) * self.downsampling",
+      "return (unpadded // self.downsampling + 1) * self.downsampling",
+      "horizon padding adds a block even when the length already fits"),
+    M("G07", "geometry.py",
+      "return self.num_inference_steps // self.n_chunks",
+      "return self.num_inference_steps // self.chunk_len",
+      "steps per call N / Tb instead of N / h"),
+    M("G08", "geometry.py",
+      "return slice(self.n_past, self.n_past + self.chunk_len)",
+      "return slice(self.n_past + 1, self.n_past + 1 + self.chunk_len)",
+      "executed slice one slot late"),
+    # --- schedule.py: k -> t table, clean end, coefficients, clamps, active guard ----------------------
+    M("S01", "schedule.py",
+      "timesteps = torch.as_tensor(scheduler.timesteps, dtype=torch.long).flip(0)",
+      "timesteps = torch.as_tensor(scheduler.timesteps, dtype=torch.long)",
+      "k -> t table descending (k = 1 maps to the noisiest timestep)"),
+    M("S02", "schedule.py",
+      "return self.timestep_table[k]",
+      "return self.timestep_table[k - 1]",
+      "k -> t table read one entry low (off by one)"),
+    M("S03", "schedule.py",
+      "return self.abar_shifted[t + 1].unsqueeze(-1)",
+      "return self.abar_shifted[t].unsqueeze(-1)",
+      "abar gathered one timestep off"),
+    M("S04", "schedule.py",
+      "final = float(scheduler.final_alpha_cumprod) if self.is_ddim else 1.0",
+      "final = 1.0",
+      "clean-end abar ignores DDIM's final_alpha_cumprod (set_alpha_to_one=False)"),
+    M("S05", "schedule.py",
+      "final = float(scheduler.final_alpha_cumprod) if self.is_ddim else 1.0",
+      "final = float(scheduler.alphas_cumprod[0])",
+      "clean end is abar_0 instead of 1: executed actions keep residual noise"),
+    M("S06", "schedule.py",
+      "return abar.sqrt() * x0 + (1 - abar).sqrt() * eps",
+      "return abar * x0 + (1 - abar) * eps",
+      "forward process without square roots"),
+    M("S07", "schedule.py",
+      "self.train_timesteps((k - 1).clamp(min=0))",
+      "self.train_timesteps((k - 2).clamp(min=0))",
+      "each step targets two levels down"),
+    M("S08", "schedule.py",
+      "self.train_timesteps((k - 1).clamp(min=0))",
+      "self.train_timesteps(k - 1)",
+      "clamp removed from t_prev",
+      equivalent="k - 1 < 0 only where k = 0, an inactive slot whose result torch.where discards"),
+    M("S09", "schedule.py",
+      "return torch.where(c.active, prev, sample)",
+      "return prev",
+      "torch.where(active) guard removed: clean slots (k = 0) are stepped"),
+    M("S10", "schedule.py",
+      "active=(k > 0).unsqueeze(-1),",
+      "active=(k > 1).unsqueeze(-1),",
+      "the last step (k = 1 -> 0) is skipped"),
+    M("S11", "schedule.py",
+      "x0 = x0.clamp(-self.clip_range, self.clip_range)",
+      "x0 = x0",
+      "x0 clipping removed"),
+    M("S12", "schedule.py",
+      "x0 = (sample - c.sqrt_one_minus_abar * eps) / c.sqrt_abar",
+      "x0 = (sample - c.sqrt_one_minus_abar * eps) * c.sqrt_abar",
+      "epsilon -> x0 conversion multiplies by sqrt(abar)"),
+    M("S13", "schedule.py",
+      "beta_t = 1 - abar / abar_prev",
+      "beta_t = 1 - abar",
+      "DDPM beta of the (strided) step taken as 1 - abar_t"),
+    M("S14", "schedule.py",
+      "variance = ((1 - abar_prev) / (1 - abar) * beta_t).clamp(min=1e-20)",
+      "variance = (1 - abar_prev) / (1 - abar) * beta_t",
+      "clamp removed from the DDPM variance",
+      equivalent="the variance is 0 only on the step from t = 0, whose noise the (t > 0) gate zeroes anyway; "
+      "inactive slots (NaN either way) are discarded by torch.where"),
+    M("S15", "schedule.py",
+      "noise_std=variance.sqrt() * (t > 0).unsqueeze(-1),",
+      "noise_std=variance.sqrt(),",
+      "DDPM noise gate on the step from t = 0 removed",
+      equivalent="on the step from t = 0 abar_prev = 1, the variance is 0 and clamped to 1e-20: without the "
+      "gate the added noise is 1e-10 z, below float32 resolution of the actions"),
+    M("S16", "schedule.py",
+      "x0_coef=abar_prev.sqrt() * beta_t / (1 - abar),",
+      "x0_coef=abar.sqrt() * beta_t / (1 - abar),",
+      "DDPM posterior x0 coefficient uses abar_t instead of abar_prev"),
+    M("S17", "schedule.py",
+      "xt_coef=(1 - beta_t).sqrt() * (1 - abar_prev) / (1 - abar),",
+      "xt_coef=(1 - beta_t) * (1 - abar_prev) / (1 - abar),",
+      "DDPM posterior x_t coefficient without the square root"),
+    M("S18", "schedule.py",
+      "eps_coef=(1 - abar_prev).sqrt()",
+      "eps_coef=(1 - abar).sqrt()",
+      "DDIM direction term at the current level instead of the previous one"),
+    M("S19", "schedule.py",
+      "return torch.randn(x.shape, generator=generator, device=x.device, dtype=x.dtype)",
+      "return torch.randn(x.shape, device=x.device, dtype=x.dtype)",
+      "every draw ignores the generator (global RNG)"),
+    # --- noise_schemes.py: chunk-wise bands ----------------------------------------------------------
+    M("N01", "noise_schemes.py",
+      "offset = torch.randint(1, s + 1, (batch_size, 1))",
+      "offset = torch.randint(0, s, (batch_size, 1))",
+      "chunk-wise band offset [0, s-1]: chunk 0 can be clean (t = -1)"),
+    M("N02", "noise_schemes.py",
+      "offset = torch.randint(1, s + 1, (batch_size, 1))",
+      "offset = torch.randint(1, s + 1, (batch_size, geometry.horizon))",
+      "chunk-wise offset drawn per slot, not shared by the sample"),
+    M("N03", "noise_schemes.py",
+      "k = geometry.slot_chunk.unsqueeze(0) * s + offset",
+      "k = geometry.slot_chunk.unsqueeze(0) + offset",
+      "chunk i's band shifted by i instead of i*s"),
+    M("N04", "noise_schemes.py",
+      "k = geometry.slot_chunk.unsqueeze(0) * s + offset",
+      "k = geometry.start_levels.unsqueeze(0) - offset + 1",
+      "band counted down from its top",
+      equivalent="offset is uniform on 1..s, so (i+1)*s + 1 - offset has the same distribution as "
+      "i*s + offset, still shared by all chunks of the sample"),
+    M("N05", "noise_schemes.py",
+      "torch.multinomial(torch.tensor([w[name] for name in active]),",
+      "torch.multinomial(torch.ones(len(active)),",
+      "mixture weights ignored (uniform over the active schemes)"),
+    # --- modeling_sdp.py: the constant primer -------------------------------------------------------
+    M("P01", "modeling_sdp.py",
+      "history[OBS_STATE][:, -1]",
+      "history[OBS_STATE][:, 0]",
+      "constant primer reads the oldest observation instead of the newest"),
+    M("P02", "modeling_sdp.py",
+      "scale, offset = self.state_to_action",
+      "offset, scale = self.state_to_action",
+      "constant primer's state -> action map with scale and offset swapped"),
+]  # fmt: skip
+
+
+@dataclass
+class Result:
+    id: str
+    file: str
+    description: str
+    equivalent: str | None
+    status: str  # killed | survived | error
+    killed_by: str
+    seconds: float
+
+
+def check_list(mutants: list[Mutant], root: Path) -> list[str]:
+    """Every original text occurs exactly once in its file: the list cannot silently rot."""
+    problems, seen = [], set()
+    for m in mutants:
+        if m.id in seen:
+            problems.append(f"{m.id}: duplicate id")
+        seen.add(m.id)
+        path = root / PKG / m.file
+        if not path.is_file():
+            problems.append(f"{m.id}: {PKG}/{m.file} does not exist")
+            continue
+        count = path.read_text().count(m.original)
+        if count != 1:
+            where = "not found" if count == 0 else f"found {count} times (ambiguous)"
+            problems.append(f"{m.id}: original text {where} in {PKG}/{m.file}: {m.original!r}")
+        if m.original == m.replacement:
+            problems.append(f"{m.id}: replacement equals the original")
+    return problems
+
+
+def make_copy(dest: Path) -> Path:
+    ignore = shutil.ignore_patterns("__pycache__", "*.pyc", ".pytest_cache")
+    for name in COPIED:
+        src = REPO / name
+        if src.is_dir():
+            shutil.copytree(src, dest / name, ignore=ignore)
+        else:
+            shutil.copy2(src, dest / name)
+    return dest
+
+
+def test_env(root: Path) -> dict:
+    env = dict(os.environ)
+    env.update(
+        OMP_NUM_THREADS="1",
+        MKL_NUM_THREADS="1",
+        # a same-size mutant written within the same second must not load a stale .pyc
+        PYTHONDONTWRITEBYTECODE="1",
+        PYTHONPATH=str(root),  # the copy, ahead of the editable install of the working tree
+        HF_HUB_OFFLINE="1",
+        WANDB_MODE="disabled",
+    )
+    return env
+
+
+def run_tests(root: Path, tests: list[str], deselect: list[str], timeout: float) -> tuple[int, str]:
+    cmd = [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", *tests]
+    for node in deselect:
+        cmd += ["--deselect", node]
+    try:
+        proc = subprocess.run(
+            cmd, cwd=root, env=test_env(root), capture_output=True, text=True, timeout=timeout, check=False
+        )
+    except subprocess.TimeoutExpired as e:
+        out = e.stdout.decode() if isinstance(e.stdout, bytes) else (e.stdout or "")
+        return -1, out + f"\n[timeout after {timeout:.0f} s]"
+    return proc.returncode, proc.stdout + proc.stderr
+
+
+def first_failure(output: str) -> str:
+    for line in output.splitlines():
+        if line.startswith(("FAILED ", "ERROR ")):
+            return line.split(" - ")[0].split(" ", 1)[1]
+    if "[timeout" in output:
+        return "timeout"
+    tail = [line for line in output.splitlines() if line.strip()]
+    return tail[-1][:120] if tail else "?"
+
+
+def run_mutant(m: Mutant, root: Path, tests, deselect, timeout) -> Result:
+    path = root / PKG / m.file
+    original = path.read_text()
+    start = time.monotonic()
+    try:
+        path.write_text(original.replace(m.original, m.replacement, 1))
+        rc, output = run_tests(root, tests, deselect, timeout)
+    finally:
+        path.write_text(original)
+    if rc == 0:
+        status, by = "survived", ""
+    elif rc == 5:  # no tests collected: the harness is broken, not the mutant
+        status, by = "error", "pytest collected no tests"
+    else:
+        status, by = "killed", first_failure(output)
+    return Result(m.id, m.file, m.description, m.equivalent, status, by, round(time.monotonic() - start, 1))
+
+
+def verdict(r: Result) -> str:
+    if r.status == "error":
+        return "ERROR"
+    if r.equivalent:
+        return "ok (equivalent, survives)" if r.status == "survived" else "EQUIVALENCE CLAIM WRONG (killed)"
+    return "ok" if r.status == "killed" else "SURVIVED"
+
+
+def write_reports(results: list[Result], out: Path, meta: dict) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "report.json").write_text(json.dumps({**meta, "mutants": [asdict(r) for r in results]}, indent=2))
+    lines = [
+        "# Mutation check of the streaming core",
+        "",
+        f"`{meta['command']}` at {meta['commit']}{' (dirty tree)' if meta['dirty'] else ''}, "
+        f"{meta['finished']}, {meta['wall_s']:.0f} s wall.",
+        f"Tests: {' '.join(meta['tests'])}"
+        + (f"; deselected: {meta['deselect']}" if meta["deselect"] else ""),
+        "",
+        f"**{meta['summary']}**",
+        "",
+        "| id | file | mutation | result | killed by | s |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in results:
+        what = r.description + (f" *(equivalent: {r.equivalent})*" if r.equivalent else "")
+        lines.append(f"| {r.id} | {r.file} | {what} | {verdict(r)} | {r.killed_by} | {r.seconds} |")
+    (out / "report.md").write_text("\n".join(lines) + "\n")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--only", default="", help="comma-separated mutant ids")
+    parser.add_argument("--list", action="store_true", help="check the list against the sources and print it")
+    parser.add_argument("--skip-equivalent", action="store_true", help="do not run the equivalent mutants")
+    parser.add_argument("--out", type=Path, default=REPO / "outputs" / "mutants")
+    parser.add_argument("--jobs", type=int, default=1, help="mutants run in parallel (one copy each)")
+    parser.add_argument("--timeout", type=float, default=900, help="seconds per mutant's test run")
+    parser.add_argument(
+        "--deselect", action="append", default=[], help="pytest node id to leave out (recorded in the report)"
+    )
+    args = parser.parse_args()
+
+    problems = check_list(MUTANTS, REPO)
+    if problems:
+        print("error: the mutant list no longer matches the sources; update .ci/mutants.py:", file=sys.stderr)
+        for p in problems:
+            print(f"  {p}", file=sys.stderr)
+        return 2
+    mutants = MUTANTS
+    if args.only:
+        wanted = {i.strip() for i in args.only.split(",") if i.strip()}
+        unknown = wanted - {m.id for m in MUTANTS}
+        if unknown:
+            print(f"error: unknown mutant ids {sorted(unknown)}", file=sys.stderr)
+            return 2
+        mutants = [m for m in MUTANTS if m.id in wanted]
+    if args.skip_equivalent:
+        mutants = [m for m in mutants if not m.equivalent]
+    if args.list:
+        for m in mutants:
+            print(f"{m.id}  {m.file:<16} {m.description}" + ("  [equivalent]" if m.equivalent else ""))
+        return 0
+
+    started, t0 = time.strftime("%Y-%m-%d %H:%M:%S"), time.monotonic()
+    tmp = Path(tempfile.mkdtemp(prefix="sdp-mutants-"))
+    try:
+        copies = [make_copy(tmp / f"copy{i}") for i in range(max(1, args.jobs))]
+        probe = subprocess.run(
+            [sys.executable, "-c", f"import {PKG}; print({PKG}.__file__)"],
+            cwd=copies[0], env=test_env(copies[0]), capture_output=True, text=True, check=False,
+        )  # fmt: skip
+        if not probe.stdout.strip().startswith(str(copies[0])):
+            print(
+                f"error: the copy does not import its own {PKG}: {probe.stdout}{probe.stderr}",
+                file=sys.stderr,
+            )
+            return 2
+        print(f"{len(mutants)} mutants, tests: {' '.join(CORE_TESTS)}")
+        print("baseline (unmutated copy) ...", flush=True)
+        rc, output = run_tests(copies[0], CORE_TESTS, args.deselect, args.timeout)
+        if rc != 0:
+            print(output[-4000:], file=sys.stderr)
+            print(
+                "error: the unmutated code fails the core tests; fix them first "
+                "(or --deselect a test that is known to fail for an unrelated reason).",
+                file=sys.stderr,
+            )
+            return 2
+        print(f"baseline passes ({time.monotonic() - t0:.0f} s)", flush=True)
+
+        pool: queue.Queue[Path] = queue.Queue()
+        for c in copies:
+            pool.put(c)
+
+        def job(m: Mutant) -> Result:
+            root = pool.get()
+            try:
+                r = run_mutant(m, root, CORE_TESTS, args.deselect, args.timeout)
+            finally:
+                pool.put(root)
+            print(f"{r.id:<4} {verdict(r):<34} {r.seconds:6.1f} s  {r.description}", flush=True)
+            return r
+
+        with ThreadPoolExecutor(max_workers=len(copies)) as ex:
+            results = list(ex.map(job, mutants))
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+    wall = time.monotonic() - t0
+    bad = [r for r in results if verdict(r) not in ("ok", "ok (equivalent, survives)")]
+    behavioural = [r for r in results if not r.equivalent]
+    killed = sum(r.status == "killed" for r in behavioural)
+    summary = (
+        f"{killed}/{len(behavioural)} behaviour-changing mutants killed, "
+        f"{sum(r.status == 'survived' for r in results if r.equivalent)}/{len(results) - len(behavioural)} "
+        f"equivalent mutants survive; {len(bad)} problem(s)"
+    )
+    git = lambda *a: subprocess.run(["git", *a], cwd=REPO, capture_output=True, text=True).stdout.strip()  # noqa: E731
+    meta = dict(
+        command="python .ci/mutants.py " + " ".join(sys.argv[1:]),
+        commit=git("rev-parse", "--short", "HEAD"),
+        dirty=bool(git("status", "--porcelain", "--", PKG, "tests")),
+        started=started,
+        finished=time.strftime("%Y-%m-%d %H:%M:%S"),
+        wall_s=round(wall, 1),
+        tests=CORE_TESTS,
+        deselect=args.deselect,
+        summary=summary,
+    )
+    write_reports(results, args.out, meta)
+
+    print()
+    print(f"{'id':<4} {'file':<16} {'result':<34} {'killed by':<70}")
+    for r in results:
+        print(f"{r.id:<4} {r.file:<16} {verdict(r):<34} {r.killed_by[:70]}")
+    print(f"\n{summary}; {wall:.0f} s. Reports: {args.out / 'report.md'}, {args.out / 'report.json'}")
+    for r in bad:
+        print(f"  PROBLEM {r.id}: {verdict(r)}: {r.description}", file=sys.stderr)
+    return 1 if bad else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
