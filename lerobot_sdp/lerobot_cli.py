@@ -21,7 +21,7 @@ def lerobot_bin(name: str) -> str:
     return str(Path(sys.executable).parent / name)
 
 
-# One torch thread per LeRobot process unless the caller chose otherwise: with one DataLoader worker
+# One torch thread per LeRobot process unless the caller chose otherwise: with DataLoader workers
 # beside it, data loading and the update each get a core of a small machine, and no OpenMP pool
 # spin-waits for a core another process holds (docs/benchmarks.md, "Training throughput").
 THREAD_DEFAULTS = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}

@@ -304,7 +304,7 @@ def run(args: argparse.Namespace) -> dict:
     common = [
         f"--batch_size={budget.batch_size}",
         "--seed=1000",
-        "--num_workers=1",
+        "--num_workers=2",
         "--wandb.enable=false",
         f"--save_freq={args.curve_every or max(1, min(budget.steps, 2000))}",
         "--log_freq=200",

@@ -11,7 +11,9 @@ Variants (`--variants`):
              no DataLoader worker, torch's default thread count (one per core);
   tuned      one DataLoader worker and one torch thread in the training process
              (OMP_NUM_THREADS=1): data loading and the update run on separate cores;
-  workers2   two DataLoader workers, one torch thread.
+  workers2   two DataLoader workers, one torch thread;
+  threads2_passive  one worker, two torch threads whose OpenMP pool sleeps instead of spinning
+             while it waits (OMP_WAIT_POLICY=PASSIVE).
 Output: OUTPUT_DIR/throughput.json and a Markdown table on stdout.
 """
 
@@ -29,11 +31,15 @@ from ..lerobot_cli import lerobot_bin
 
 REPO = Path(__file__).resolve().parents[2]
 STEP_LOG = re.compile(r"step:(\d+[KM]?)\b.*updt_s:([\d.]+) data_s:([\d.]+)")
-THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS")
+THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OMP_WAIT_POLICY")
 VARIANTS = {
     "baseline": ({}, ["--num_workers=0"]),
     "tuned": ({"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}, ["--num_workers=1"]),
     "workers2": ({"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}, ["--num_workers=2"]),
+    "threads2_passive": (
+        {"OMP_NUM_THREADS": "2", "MKL_NUM_THREADS": "2", "OMP_WAIT_POLICY": "PASSIVE"},
+        ["--num_workers=1"],
+    ),
 }
 
 

@@ -5,9 +5,11 @@ Builds everything with LeRobot's own factories from a training config (`make_dat
 and DataLoader settings `lerobot-train` uses) and times each phase of the step the way
 `lerobot-train`'s `update_policy` runs it: data (waiting for the DataLoader), preprocess, forward,
 backward, optimizer (gradient clipping, optimizer and lr-scheduler step), EMA (`policy.update()`,
-SDP only). Both policies share the config's U-Net, batch and data; DP's horizon is SDP's by
-default (the same denoiser input, as in the latency benchmark) or `--dp_horizon`, e.g. LeRobot's
-reference 16. Output: OUTPUT_DIR/train_profile.json and a Markdown table on stdout.
+SDP only). Both policies share the config's U-Net, batch and data. DP's horizon is SDP's by default
+(the same denoiser input, as in the latency benchmark: DiffusionConfig asks for a multiple of
+2**len(down_dims), stricter than its U-Net needs, so the config is built at the next multiple and
+its horizon set back to SDP's), or `--dp_horizon`, e.g. LeRobot's Push-T reference 16.
+Output: OUTPUT_DIR/train_profile.json and a Markdown table on stdout.
 """
 
 import argparse
@@ -36,7 +38,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--num_workers", type=int, default=None, help="DataLoader workers (default: the config's)")
     p.add_argument("--batch_size", type=int, default=None, help="default: the config's")
-    p.add_argument("--dp_horizon", type=int, default=None, help="default: SDP's horizon for the config")
+    p.add_argument("--dp_horizon", type=int, default=None, help="default: SDP's horizon")
     p.add_argument("--output_dir", type=Path, default=Path("outputs/benchmarks/train_profile"))
 
 
@@ -61,12 +63,16 @@ def train_config(args: argparse.Namespace, policy: str):
         shared += ("optimizer_lr", "scheduler_warmup_steps")
         raw["policy"] = {"type": "diffusion", **{k: raw["policy"][k] for k in shared if k in raw["policy"]}}
         horizon = args.dp_horizon or train_config(args, "sdp").policy.horizon
-        raw["policy"].update(horizon=horizon, pretrained_backbone_weights=None, push_to_hub=False)
+        factor = 2 ** len(raw["policy"]["down_dims"])
+        raw["policy"].update(horizon=-(-horizon // factor) * factor, pretrained_backbone_weights=None)
+        raw["policy"]["push_to_hub"] = False
     path = args.output_dir / f"{policy}_config.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(raw))
     cfg = draccus.parse(TrainPipelineConfig, config_path=str(path), args=overrides)
     cfg.validate()
+    if policy == "diffusion":
+        cfg.policy.horizon = horizon
     return cfg
 
 
