@@ -11,6 +11,7 @@ Results: OUTPUT_DIR/results.json and OUTPUT_DIR/results.md.
 
 import argparse
 import json
+import math
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -306,7 +307,8 @@ def run(args: argparse.Namespace) -> dict:
         "--seed=1000",
         "--num_workers=2",
         "--wandb.enable=false",
-        f"--save_freq={args.curve_every or max(1, min(budget.steps, 2000))}",
+        # at most 2,000 steps lost to an interruption; curves evaluate the multiples of --curve_every
+        f"--save_freq={math.gcd(args.curve_every or 0, max(1, min(budget.steps, 2000)))}",
         "--log_freq=200",
     ]
     results_file = output_dir / "results.json"
