@@ -86,7 +86,9 @@ class SDPConfig(PreTrainedConfig):
     # SDP
     action_primer: str = "zero"
     noise_schemes: NoiseSchemeWeights = field(default_factory=NoiseSchemeWeights)
-    do_mask_loss_for_padding: bool = True
+    # As LeRobot's DP: copy-padded actions past an episode's end stay in the loss (the policy learns
+    # to hold the final pose). Masking them made no measurable difference (docs/results.md).
+    do_mask_loss_for_padding: bool = False
 
     # EMA (the authors' settings)
     use_ema: bool = True

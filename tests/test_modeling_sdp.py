@@ -34,8 +34,8 @@ def test_training_step_reduces_loss_on_a_fixed_batch(image):
     assert sum(losses[-10:]) / 10 < 0.5 * sum(losses[:5]) / 5
 
 
-def test_padded_actions_do_not_contribute_to_the_loss():
-    cfg = tiny_config(prediction_type="sample")
+def test_padded_actions_do_not_contribute_to_the_loss_when_masked():
+    cfg = tiny_config(prediction_type="sample", do_mask_loss_for_padding=True)
     policy = SDPPolicy(cfg)
     policy.model.unet.forward = lambda x, t, global_cond=None: torch.zeros_like(x)  # loss = mean(a^2)
     batch = training_batch(cfg)
@@ -43,6 +43,8 @@ def test_padded_actions_do_not_contribute_to_the_loss():
     batch["action"][:, -6:] = 100.0  # garbage where padded
     loss, _ = policy.forward(batch)
     torch.testing.assert_close(loss, batch["action"][:, :-6].pow(2).mean())
+    policy.config.do_mask_loss_for_padding = False  # the default, as LeRobot's DP: padding counts
+    torch.testing.assert_close(policy.forward(batch)[0], batch["action"].pow(2).mean())
 
 
 def test_ema_follows_the_authors_schedule_and_serves_eval():
