@@ -33,6 +33,7 @@ def test_tiny_comparison_runs_resumes_and_reports(tmp_path, capsys):
         str(tmp_path / "data"),
         "--curve_every",
         "1",
+        "--sweep",
     ]
     cli.main(argv)
     report = json.loads((tmp_path / "q" / "results.json").read_text())
@@ -50,6 +51,11 @@ def test_tiny_comparison_runs_resumes_and_reports(tmp_path, capsys):
         assert all(p["n_episodes"] == 2 and p["train_wall_s"] >= 0 for p in row["curve"])
         assert row["curve"][-1]["avg_max_reward"] == row["avg_max_reward"]  # the last point is the run's eval
     assert (tmp_path / "q" / "curves.png").stat().st_size > 10_000
+    sweep = report["sweep"]  # the final models again at several samplers, calls counted
+    assert [p["sampler"] for p in sweep["dp"]] == ["DDPM100", "DDIM16", "DDIM10", "DDIM5", "DDIM2"]
+    assert [p["denoiser_calls_per_chunk"] for p in sweep["dp"]] == [100, 16, 10, 5, 2]
+    assert [p["denoiser_calls_per_chunk"] for p in sweep["sdp_h4"]] == [25, 4, 2, 1]
+    assert (tmp_path / "q" / "cost.png").stat().st_size > 10_000
     # the same command again resumes: nothing is retrained, the status says so
     capsys.readouterr()
     cli.main([*argv, "--status"])

@@ -16,8 +16,9 @@ import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
-from ..lerobot_cli import evaluate, pusht_eval_args, train, trained_steps
+from ..lerobot_cli import evaluate, last_checkpoint, pusht_eval_args, train, trained_steps
 from ..pusht.data import keypoints_dataset_args
+from . import cost_sweep
 from .curves import checkpoint_steps, episode_stats, plot, step_logs, wall_time_at
 from .stream_cost import stream_cost
 
@@ -269,6 +270,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="train every run this many steps instead of the budget's (a reduced budget, labelled so)",
     )
     parser.add_argument(
+        "--sweep",
+        action="store_true",
+        help="then evaluate the comparison's final models at several samplers (cost.png)",
+    )
+    parser.add_argument(
         "--curve_every",
         type=int,
         default=None,
@@ -325,5 +331,37 @@ def run(args: argparse.Namespace) -> dict:
                 f"Push-T keypoints, budget {budget_name}, {budget.n_episodes} episodes per point",
             )
         print("\n".join(status(selected, output_dir)), flush=True)
+    if args.sweep:
+        report["sweep"] = run_sweep(selected, output_dir, budget, args.device)
+        results_file.write_text(json.dumps(report, indent=2))
+        with (output_dir / "results.md").open("a") as f:
+            f.write(sweep_markdown(report["sweep"]))
+        cost_sweep.plot(report["sweep"], output_dir / "cost.png", f"Push-T keypoints, budget {budget_name}")
     print((output_dir / "results.md").read_text())
     return report
+
+
+def run_sweep(selected: list[Run], output_dir: Path, budget: Budget, device: str) -> dict[str, list[dict]]:
+    """The comparison's final models at several samplers each (no retraining)."""
+    eval_args = pusht_eval_args(OBS_TYPE, budget.n_episodes, EVAL_SEED, device, budget.episode_length)
+    sweeps = {}
+    for run in selected:
+        if run.name not in ("dp", "sdp_h2", "sdp_h4"):
+            continue
+        policy_type = "diffusion" if run.name == "dp" else "sdp"
+        model_dir = last_checkpoint(output_dir / "runs" / run.name / "train") / "pretrained_model"
+        sweeps[run.name] = cost_sweep.sweep(policy_type, model_dir, run_dir(output_dir, run), eval_args)
+    return sweeps
+
+
+def sweep_markdown(sweeps: dict[str, list[dict]]) -> str:
+    out = ["", "### Quality against cost (the final models at several samplers)", ""]
+    out += ["| run | sampler | denoiser calls / chunk | latency / chunk (ms) | avg_max_reward | pc_success |"]
+    out += ["|" + "---|" * 6]
+    out += [
+        f"| {name} | {p['sampler']} | {p['denoiser_calls_per_chunk']:g} | {p['latency_per_chunk_ms']:.1f} | "
+        f"{with_se(p, 'avg_max_reward', 3)} | {with_se(p, 'pc_success', 1)} |"
+        for name, points in sweeps.items()
+        for p in points
+    ]
+    return "\n".join(out) + "\n"
