@@ -1,5 +1,6 @@
-"""Streaming Diffusion Policy for LeRobot. Importing the package registers `--policy.type=sdp` and
-`--env.type=robomimic` (robosuite itself loads only when such an env is built)."""
+"""Streaming Diffusion Policy for LeRobot. Importing the package registers `--policy.type=sdp`,
+`--env.type=robomimic` (robosuite itself loads only when such an env is built) and
+`--robot.type=pusht_sim` (gym-pusht loads only when the robot connects)."""
 
 from . import torchcodec_notice
 
@@ -10,5 +11,6 @@ from .configuration_sdp import SDPConfig  # noqa: E402
 from .modeling_sdp import SDPPolicy  # noqa: E402
 from .processor_sdp import make_sdp_pre_post_processors  # noqa: E402
 from .robomimic import RobomimicEnvConfig  # noqa: E402
+from .robots import PushTSimConfig  # noqa: E402
 
-__all__ = ["RobomimicEnvConfig", "SDPConfig", "SDPPolicy", "make_sdp_pre_post_processors"]
+__all__ = ["PushTSimConfig", "RobomimicEnvConfig", "SDPConfig", "SDPPolicy", "make_sdp_pre_post_processors"]

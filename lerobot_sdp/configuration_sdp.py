@@ -17,6 +17,7 @@ from .geometry import ChunkGeometry
 from .noise_schemes import NoiseSchemeWeights
 
 ACTION_PRIMERS = ("zero", "constant", "denoise")
+STEP_CONDITIONINGS = ("flatten", "film_per_slot")
 
 
 def _check_choice(name: str, value: str, choices) -> None:
@@ -37,6 +38,14 @@ class SDPConfig(PreTrainedConfig):
         noise_schemes: training mixture weights of the corruption schemes constant / linear /
             independent / chunkwise (default 0.2 constant + 0.8 chunkwise, the paper's best).
         use_ema, ema_power, ema_max_decay: EMA of the weights, used for inference in eval mode.
+        step_conditioning: how the per-slot noise levels condition the U-Net. "flatten" (the paper):
+            the slots' step embeddings are flattened into one vector (ties the network to its horizon).
+            "film_per_slot": each slot's level goes through DP's own step encoder and conditions its own
+            position through the blocks' FiLM (pooled to each U-Net level); with every slot at one
+            level this is exactly DP's network, so DP's weights all carry over (`unet.py`).
+        init_from: warm start from a trained LeRobot `diffusion` checkpoint (a local `pretrained_model`
+            folder or a Hub id): its matching weights and normaliser statistics are copied when the
+            policy is built (`warm_start.py`). Ignored when an SDP checkpoint is loaded.
     Everything else means what it means in LeRobot's DiffusionConfig.
     """
 
@@ -71,6 +80,7 @@ class SDPConfig(PreTrainedConfig):
     diffusion_step_embed_dim: int = 128
     use_film_scale_modulation: bool = True
     gradient_checkpointing: bool = False
+    step_conditioning: str = "flatten"
 
     # Noise scheduler
     noise_scheduler_type: str = "DDPM"
@@ -98,6 +108,9 @@ class SDPConfig(PreTrainedConfig):
     compile_model: bool = False
     compile_mode: str = "reduce-overhead"
 
+    # Warm start from a LeRobot Diffusion Policy checkpoint (path or Hub id)
+    init_from: str | None = None
+
     # Training presets
     optimizer_lr: float = 1e-4
     optimizer_betas: tuple = (0.95, 0.999)
@@ -123,6 +136,7 @@ class SDPConfig(PreTrainedConfig):
         _check_choice("prediction_type", self.prediction_type, ("epsilon", "sample"))
         _check_choice("noise_scheduler_type", self.noise_scheduler_type, ("DDPM", "DDIM"))
         _check_choice("action_primer", self.action_primer, ACTION_PRIMERS)
+        _check_choice("step_conditioning", self.step_conditioning, STEP_CONDITIONINGS)
         if isinstance(self.noise_schemes, dict):  # convenience for Python callers
             self.noise_schemes = NoiseSchemeWeights(**self.noise_schemes)
         if self.num_inference_steps is not None and self.num_inference_steps > self.num_train_timesteps:

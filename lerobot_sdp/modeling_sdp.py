@@ -10,6 +10,7 @@ streaming buffer (`buffer.py`), the action primers and EMA.
 import copy
 import logging
 from collections import deque
+from contextvars import ContextVar
 
 import torch
 import torch.nn.functional as F  # noqa: N812
@@ -28,6 +29,7 @@ from .ema import ema_decay, ema_update
 from .noise_schemes import sample_levels
 from .schedule import PerSlotSchedule
 from .unet import make_variable_noise
+from .warm_start import WarmStartReport, merged_stats, warm_start
 
 MODEL_CARD_INTRO = (
     "[Streaming Diffusion Policy (SDP)](https://arxiv.org/abs/2406.04806) keeps a buffer of partially "
@@ -36,6 +38,10 @@ MODEL_CARD_INTRO = (
     "(`--policy.type=sdp`); install the plugin to load this model with LeRobot.\n"
 )
 
+# Set while `SDPPolicy.from_pretrained` builds the policy: the checkpoint's weights replace the warm
+# start's, and the Diffusion Policy checkpoint it named may no longer be reachable.
+_LOADING_CHECKPOINT: ContextVar[bool] = ContextVar("sdp_loading_checkpoint", default=False)
+
 
 class SDPModel(DiffusionModel):
     """DP's observation encoders and U-Net, trained and sampled with one noise level per slot."""
@@ -43,7 +49,9 @@ class SDPModel(DiffusionModel):
     def __init__(self, config: SDPConfig):
         super().__init__(config)
         self.geometry = config.geometry
-        make_variable_noise(self.unet, config.diffusion_step_embed_dim, self.geometry.horizon)
+        make_variable_noise(
+            self.unet, config.diffusion_step_embed_dim, self.geometry.horizon, config.step_conditioning
+        )
         self.schedule = PerSlotSchedule(self.noise_scheduler, self.num_inference_steps)
 
     def denoiser(self, global_cond: Tensor) -> Denoiser:
@@ -135,6 +143,11 @@ class SDPPolicy(PreTrainedPolicy):
         self.model = SDPModel(config)
         self.ema_model = copy.deepcopy(self.model).requires_grad_(False) if config.use_ema else None
         self.register_buffer("ema_step", torch.zeros((), dtype=torch.long))
+        self.warm_start_report: WarmStartReport | None = None
+        if config.init_from and not _LOADING_CHECKPOINT.get():
+            self.warm_start_report = warm_start(self, config.init_from)
+            checkpoint = self.warm_start_report.checkpoint  # the processor warns about the stats
+            dataset_stats = merged_stats(checkpoint, dataset_stats, warn=False)
         self.register_buffer("state_to_action", state_to_action_map(config, dataset_stats))
         self.geometry = config.geometry
         # Plain attribute, not a registered buffer: streaming state never enters a checkpoint.
@@ -292,6 +305,16 @@ class SDPPolicy(PreTrainedPolicy):
         title = f"# Model Card for {self.name}\n"
         card.content = card.content.replace(title, title + "\n" + MODEL_CARD_INTRO, 1)
         return card
+
+    @classmethod
+    def from_pretrained(cls, *args, **kwargs):
+        """LeRobot's loader; a config's `init_from` (the warm start this policy began with) is not
+        re-run: the checkpoint's trained weights are what is loaded."""
+        token = _LOADING_CHECKPOINT.set(True)
+        try:
+            return super().from_pretrained(*args, **kwargs)
+        finally:
+            _LOADING_CHECKPOINT.reset(token)
 
     @classmethod
     def _load_as_safetensor(cls, model, model_file: str, map_location: str, strict: bool):

@@ -7,9 +7,20 @@ unchanged and replace its diffusion-step encoder with the paper-faithful per-slo
 sinusoidal embedding of every slot's level -> flatten (B, T*E) -> MLP -> one (B, E) vector, which
 the U-Net concatenates with the observation conditioning and applies through its usual FiLM.
 The flatten ties the network to one horizon (sdp-algorithm.md, section 5).
+
+``step_conditioning="film_per_slot"`` is the alternative: LeRobot's step encoder is kept as it is
+(sinusoidal + MLP, DP's weight layout) and applied to every slot's level; the U-Net's conditioning
+becomes per position, (B, T, E + G) = [step_emb(t_slot), global_cond], and every residual block
+applies its FiLM (its own ``cond_encoder``) per position, the conditioning average-pooled to the
+block's temporal length. With every slot at one level this is exactly DP's network, at any horizon.
+Both pieces are LeRobot's classes with one method overridden, swapped in place, so the state-dict
+keys stay DP's.
 """
 
+import torch
+import torch.nn.functional as F  # noqa: N812
 from lerobot.policies.diffusion.modeling_diffusion import (
+    DiffusionConditionalResidualBlock1d,
     DiffusionConditionalUnet1d,
     DiffusionSinusoidalPosEmb,
 )
@@ -38,10 +49,63 @@ class PerSlotStepEncoder(nn.Module):
         return self.mlp(self.embed(timesteps).flatten(start_dim=1))
 
 
-def make_variable_noise(unet: nn.Module, embed_dim: int, horizon: int) -> None:
-    """Give LeRobot's U-Net (same blocks, same FiLM) a step input of one level per slot. Works on a
-    ``torch.compile``d U-Net too: compilation is lazy, so the swap happens before tracing."""
+class PerPositionFiLMBlock(DiffusionConditionalResidualBlock1d):
+    """LeRobot's residual block whose FiLM also takes per-position conditioning (B, T, cond_dim): it is
+    average-pooled to the block's temporal length and goes through the block's own ``cond_encoder``.
+    A (B, cond_dim) conditioning takes LeRobot's path unchanged."""
+
+    def forward(self, x: Tensor, cond: Tensor) -> Tensor:
+        if cond.ndim == 2:
+            return super().forward(x, cond)
+        out = self.conv1(x)
+        pooled = F.adaptive_avg_pool1d(cond.transpose(1, 2), out.shape[-1]).transpose(1, 2)
+        film = self.cond_encoder(pooled).transpose(1, 2)  # (B, channels, L)
+        if self.use_film_scale_modulation:
+            out = film[:, : self.out_channels] * out + film[:, self.out_channels :]
+        else:
+            out = out + film
+        return self.conv2(out) + self.residual_conv(x)
+
+
+class FiLMPerSlotUnet1d(DiffusionConditionalUnet1d):
+    """LeRobot's U-Net taking one level per slot, (B, T), each slot conditioning its own position."""
+
+    def forward(self, x: Tensor, timestep: Tensor, global_cond: Tensor | None = None) -> Tensor:
+        if timestep.ndim != 2 or timestep.shape[1] != x.shape[1]:
+            raise ValueError(
+                f"The variable-noise U-Net needs one level per slot, shape (B, {x.shape[1]}); "
+                f"got {tuple(timestep.shape)}."
+            )
+        if global_cond is not None:  # LeRobot's forward concatenates it with the (B, T, E) step embedding
+            global_cond = global_cond.unsqueeze(1).expand(-1, x.shape[1], -1)
+        return super().forward(x, timestep, global_cond=global_cond)
+
+
+def make_variable_noise(unet: nn.Module, embed_dim: int, horizon: int, mode: str = "flatten") -> None:
+    """Give LeRobot's U-Net (same blocks, same FiLM) a step input of one level per slot, with the
+    paper's flattened step encoder (``mode="flatten"``) or per-position FiLM (``"film_per_slot"``).
+    Works on a ``torch.compile``d U-Net too: compilation is lazy, so the swap happens before tracing."""
     base = getattr(unet, "_orig_mod", unet)
     if not isinstance(base, DiffusionConditionalUnet1d):
         raise TypeError(f"Expected LeRobot's DiffusionConditionalUnet1d, got {type(base).__name__}.")
-    base.diffusion_step_encoder = PerSlotStepEncoder(embed_dim, horizon)
+    if mode == "flatten":
+        base.diffusion_step_encoder = PerSlotStepEncoder(embed_dim, horizon)
+    elif mode == "film_per_slot":
+        base.__class__ = FiLMPerSlotUnet1d
+        for module in base.modules():
+            if type(module) is DiffusionConditionalResidualBlock1d:
+                module.__class__ = PerPositionFiLMBlock
+    else:
+        raise ValueError(f"Unknown step conditioning {mode!r}: use 'flatten' or 'film_per_slot'.")
+
+
+@torch.no_grad()
+def flatten_encoder_from_dp(encoder: PerSlotStepEncoder, dp_encoder: dict[str, Tensor]) -> None:
+    """Initialise the paper's flattened step encoder from the state dict of DP's (LeRobot's layout:
+    0 sinusoidal, 1 Linear, 2 Mish, 3 Linear) so that with every slot at one level it computes DP's
+    embedding: the first layer sees the T slots' embeddings side by side, so it gets DP's first weight
+    divided by T, once per slot (their sum is DP's product); the second layer is DP's."""
+    first = encoder.mlp[0]
+    first.weight.copy_(dp_encoder["1.weight"].repeat(1, encoder.horizon) / encoder.horizon)
+    first.bias.copy_(dp_encoder["1.bias"])
+    encoder.mlp[2].load_state_dict({"weight": dp_encoder["3.weight"], "bias": dp_encoder["3.bias"]})

@@ -1,0 +1,189 @@
+"""`PushTSim`: gym-pusht's Push-T behind LeRobot's `Robot` interface, for `lerobot-rollout`.
+
+Observations are named scalars, as LeRobot robots declare them: the agent position `agent_x.pos`,
+`agent_y.pos`, then the 8 block keypoints `block_kp{i}_x.pos`, `block_kp{i}_y.pos` (gym-pusht's
+`environment_state` order). LeRobot keeps only scalar features ending in `.pos`/`.vel` and joins them,
+in this order, into one `observation.state` (18,); SDP's preprocessor (`SplitStateStep`) splits it
+into `observation.state` (2,) and `observation.environment_state` (16,), the features of a policy
+trained on the converted Push-T dataset. The action is the agent's target position, `agent_x.pos`,
+`agent_y.pos`, in pixels, passed to the env unclipped as `lerobot-eval` does.
+
+`send_action` steps the env once (0.1 s of simulated time) and returns at once: the rollout loop
+paces itself at `--fps`, so the robot must not sleep too. `get_observation` returns the current state.
+"""
+
+import json
+import logging
+import time
+from typing import Any
+
+import numpy as np
+from lerobot.robots.robot import Robot
+from lerobot.utils.decorators import check_if_already_connected, check_if_not_connected
+
+from .config_pusht_sim import PushTSimConfig
+
+logger = logging.getLogger(__name__)
+
+N_KEYPOINTS = 8
+AGENT_KEYS = ("agent_x.pos", "agent_y.pos")
+KEYPOINT_KEYS = tuple(f"block_kp{i}_{axis}.pos" for i in range(N_KEYPOINTS) for axis in ("x", "y"))
+PACING_CHECK_AFTER = 20  # actions before the rate check
+
+
+class PushTSim(Robot):
+    config_class = PushTSimConfig
+    name = "pusht_sim"
+
+    def __init__(self, config: PushTSimConfig):
+        super().__init__(config)
+        self.config = config
+        self._env = None
+        self._obs: dict[str, float] = {}
+        self.actions_sent = 0
+        self.ignored_commands = 0
+        self.episodes: list[dict[str, Any]] = []
+        self.rewards: list[float] = []  # the current episode's rewards
+        self.last_reward: float | None = None
+        self._success = False
+        self._t_first: float | None = None
+        self._pacing_checked = False
+
+    @property
+    def observation_features(self) -> dict:
+        return dict.fromkeys(AGENT_KEYS + KEYPOINT_KEYS, float)
+
+    @property
+    def action_features(self) -> dict:
+        return dict.fromkeys(AGENT_KEYS, float)
+
+    @property
+    def is_connected(self) -> bool:
+        return self._env is not None
+
+    @property
+    def is_calibrated(self) -> bool:
+        return True
+
+    def calibrate(self) -> None:
+        pass
+
+    def configure(self) -> None:
+        pass
+
+    @check_if_already_connected
+    def connect(self, calibrate: bool = True) -> None:
+        from gym_pusht.envs import PushTEnv  # here, not at import: LeRobot imports the config on every start
+
+        self._env = PushTEnv(obs_type=self.config.obs_type)
+        self._reset(seed=self.config.seed)
+        logger.info("pusht_sim connected (gym-pusht, %s, %d Hz)", self.config.obs_type, self.config.fps)
+
+    def _reset(self, seed: int | None = None) -> None:
+        obs, _ = self._env.reset(seed=seed)
+        self._set_obs(obs)
+        self.rewards = []
+        self._success = False
+
+    def _set_obs(self, obs: dict[str, np.ndarray]) -> None:
+        values = np.concatenate([obs["agent_pos"], obs["environment_state"]]).astype(float)
+        self._obs = dict(zip(AGENT_KEYS + KEYPOINT_KEYS, values.tolist(), strict=True))
+
+    @check_if_not_connected
+    def get_observation(self) -> dict[str, float]:
+        return dict(self._obs)
+
+    @check_if_not_connected
+    def send_action(self, action: dict[str, Any]) -> dict[str, float]:
+        if set(action) & set(KEYPOINT_KEYS):
+            # LeRobot's return-to-initial-position at shutdown commands every `.pos` observation, block
+            # keypoints included: the block cannot be commanded, and moving the pusher back is no part
+            # of the task, so the sim leaves the env as it is.
+            if not self.ignored_commands:
+                logger.info("pusht_sim ignores commands for block keypoints (return to initial position).")
+            self.ignored_commands += 1
+            return {k: self._obs[k] for k in AGENT_KEYS}
+        missing = [k for k in AGENT_KEYS if k not in action]
+        if missing:
+            raise KeyError(f"pusht_sim action lacks {missing}; it takes {list(AGENT_KEYS)}.")
+        target = np.array([float(action[k]) for k in AGENT_KEYS])
+        obs, reward, terminated, _, info = self._env.step(target)
+        self._set_obs(obs)
+        self.actions_sent += 1
+        self.last_reward = float(reward)
+        self.rewards.append(self.last_reward)
+        self._success = self._success or bool(info["is_success"])
+        logger.debug("pusht_sim step %d: reward %.3f", len(self.rewards), reward)
+        self._check_pacing()
+        if terminated or len(self.rewards) >= self.config.episode_length:
+            self._end_episode()
+            self._reset()
+        return dict(zip(AGENT_KEYS, target.tolist(), strict=True))
+
+    def _check_pacing(self) -> None:
+        now = time.perf_counter()
+        if self._t_first is None:
+            self._t_first = now
+        elif not self._pacing_checked and self.actions_sent > PACING_CHECK_AFTER:
+            self._pacing_checked = True
+            rate = (self.actions_sent - 1) / (now - self._t_first)
+            if rate > 1.5 * self.config.fps:
+                logger.warning(
+                    "pusht_sim receives actions at %.0f Hz, Push-T runs at %d Hz: the simulation runs "
+                    "faster than real time. Pass --fps=%d to lerobot-rollout.",
+                    rate,
+                    self.config.fps,
+                    self.config.fps,
+                )
+
+    def _episode_summary(self) -> dict[str, Any]:
+        return {
+            "steps": len(self.rewards),
+            "max_reward": max(self.rewards, default=0.0),
+            "sum_reward": float(sum(self.rewards)),
+            "final_reward": self.rewards[-1] if self.rewards else 0.0,
+            "success": self._success,
+        }
+
+    def _end_episode(self) -> None:
+        summary = self._episode_summary()
+        self.episodes.append(summary)
+        logger.info(
+            "pusht_sim episode %d: %d steps, max reward %.3f, success %s",
+            len(self.episodes),
+            summary["steps"],
+            summary["max_reward"],
+            summary["success"],
+        )
+        self._write_stats()
+
+    def stats(self) -> dict[str, Any]:
+        """Actions sent, finished episodes, and the episode under way (reward and success so far)."""
+        return {
+            "actions_sent": self.actions_sent,
+            "ignored_commands": self.ignored_commands,
+            "last_reward": self.last_reward,
+            "episodes": list(self.episodes),
+            "current_episode": self._episode_summary(),
+        }
+
+    def _write_stats(self) -> None:
+        if self.config.stats_path is not None:
+            self.config.stats_path.parent.mkdir(parents=True, exist_ok=True)
+            self.config.stats_path.write_text(json.dumps(self.stats(), indent=2))
+
+    @check_if_not_connected
+    def disconnect(self) -> None:
+        current = self._episode_summary()
+        logger.info(
+            "pusht_sim disconnected after %d actions, %d finished episodes; episode under way: %d steps, "
+            "max reward %.3f, success %s",
+            self.actions_sent,
+            len(self.episodes),
+            current["steps"],
+            current["max_reward"],
+            current["success"],
+        )
+        self._write_stats()
+        self._env.close()
+        self._env = None

@@ -1,0 +1,171 @@
+"""`--robot.type=pusht_sim` (Push-T on gym-pusht as a LeRobot robot) and SDP under `lerobot-rollout`."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from sdp_test_utils import PUSHT_STATS, tiny_config
+
+BIN = Path(sys.executable).parent
+KP_STATS = {"min": [0.0] * 16, "max": [512.0] * 16, "mean": [256.0] * 16, "std": [100.0] * 16}
+STATS = {**PUSHT_STATS, "observation.environment_state": KP_STATS}
+
+
+def make_robot(tmp_path, **kwargs):
+    from lerobot.robots.utils import make_robot_from_config
+
+    from lerobot_sdp.robots import PushTSimConfig
+
+    return make_robot_from_config(PushTSimConfig(calibration_dir=tmp_path / "calibration", **kwargs))
+
+
+def test_import_registers_the_robot_without_gym_pusht():
+    """The plugin's import registers `pusht_sim`; gym-pusht loads only when the robot connects."""
+    code = (
+        "import sys, lerobot_sdp; from lerobot.robots import RobotConfig; "
+        "print(RobotConfig.get_choice_class('pusht_sim').__name__, 'gym_pusht' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["PushTSimConfig", "False"]
+
+
+def test_robot_features_steps_and_episode_stats(tmp_path):
+    from lerobot_sdp.robots.pusht_sim import AGENT_KEYS, PushTSim
+
+    robot = make_robot(tmp_path, episode_length=3, stats_path=tmp_path / "stats.json")
+    assert isinstance(robot, PushTSim)
+    assert list(robot.action_features) == list(AGENT_KEYS)
+    features = robot.observation_features
+    assert len(features) == 18 and all(v is float and k.endswith(".pos") for k, v in features.items())
+    assert not robot.is_connected
+    robot.connect()
+    try:
+        obs = robot.get_observation()
+        assert list(obs) == list(features)
+        first_kp = obs["block_kp0_x.pos"]
+        sent = robot.send_action({"agent_x.pos": 100.0, "agent_y.pos": 120.0})
+        assert sent == {"agent_x.pos": 100.0, "agent_y.pos": 120.0}
+        assert robot.get_observation()["agent_x.pos"] != obs["agent_x.pos"]  # the pusher moved
+        assert 0.0 <= robot.last_reward <= 1.0
+        for _ in range(3):
+            robot.send_action({"agent_x.pos": 100.0, "agent_y.pos": 120.0})
+        # the first episode ended after 3 actions and the env reset itself
+        assert robot.actions_sent == 4 and len(robot.episodes) == 1
+        assert robot.episodes[0]["steps"] == 3 and robot.stats()["current_episode"]["steps"] == 1
+        assert robot.get_observation()["block_kp0_x.pos"] != first_kp
+        # LeRobot's return-to-initial-position (all `.pos` keys) does not step the env
+        robot.send_action(dict(obs))
+        assert robot.actions_sent == 4 and robot.ignored_commands == 1
+        with pytest.raises(KeyError):
+            robot.send_action({"agent_x.pos": 1.0})
+    finally:
+        robot.disconnect()
+    stats = json.loads((tmp_path / "stats.json").read_text())
+    assert stats["actions_sent"] == 4 and len(stats["episodes"]) == 1
+    assert set(stats["episodes"][0]) >= {"max_reward", "success", "steps"}
+
+
+def test_robot_warns_when_driven_faster_than_real_time(tmp_path, caplog):
+    robot = make_robot(tmp_path)
+    robot.connect()
+    try:
+        with caplog.at_level("WARNING"):
+            for _ in range(25):  # back to back, far faster than 10 Hz
+                robot.send_action({"agent_x.pos": 256.0, "agent_y.pos": 256.0})
+    finally:
+        robot.disconnect()
+    assert "Pass --fps=10" in caplog.text
+
+
+def test_sdp_preprocessor_splits_the_robot_state():
+    """LeRobot joins a robot's scalars into one `observation.state` (18,); SDP's preprocessor splits it
+    into the (2,) state and (16,) environment state the policy was trained on."""
+    from lerobot_sdp import SDPPolicy, make_sdp_pre_post_processors
+
+    cfg = tiny_config()
+    pre, post = make_sdp_pre_post_processors(cfg, STATS)
+    joined = {"observation.state": torch.rand(1, 18) * 512, "task": "", "robot_type": "pusht_sim"}
+    out = pre(dict(joined))
+    assert out["observation.state"].shape == (1, 2) and out["observation.environment_state"].shape == (1, 16)
+    separate = pre(
+        {
+            "observation.state": joined["observation.state"][:, :2],
+            "observation.environment_state": joined["observation.state"][:, 2:],
+        }
+    )
+    for key in ("observation.state", "observation.environment_state"):
+        assert torch.equal(out[key], separate[key])
+    action = post(SDPPolicy(cfg).select_action(out))
+    assert action.shape == (1, 2)
+    with pytest.raises(ValueError, match="environment-state"):
+        pre({"observation.state": torch.rand(1, 5)})
+
+
+def test_add_split_state_step_upgrades_an_older_checkpoint(tmp_path):
+    """A checkpoint saved with LeRobot's default pipeline (before `sdp_split_state`) gets the step."""
+    from lerobot.policies.factory import make_pre_post_processors
+    from lerobot.processor import make_default_pre_post_processors
+
+    from lerobot_sdp import SDPPolicy
+    from lerobot_sdp.processor_sdp import PREPROCESSOR_FILE, add_split_state_step
+
+    cfg = tiny_config()
+    SDPPolicy(cfg).save_pretrained(tmp_path)
+    for pipeline in make_default_pre_post_processors(cfg, STATS):
+        pipeline.save_pretrained(tmp_path)
+    cli = [sys.executable, "-m", "lerobot_sdp.robots.prepare_policy", str(tmp_path)]
+    out = subprocess.run(cli, capture_output=True, text=True, check=True).stdout
+    assert "added sdp_split_state" in out and not add_split_state_step(tmp_path)
+    steps = json.loads((tmp_path / PREPROCESSOR_FILE).read_text())["steps"]
+    assert [s["registry_name"] for s in steps][:2] == ["rename_observations_processor", "sdp_split_state"]
+    state_files = {s["state_file"] for s in steps if "state_file" in s}
+    assert {p.name for p in tmp_path.glob("policy_preprocessor_step_*")} == state_files
+    pre, _ = make_pre_post_processors(cfg, pretrained_path=str(tmp_path))
+    out = pre({"observation.state": torch.rand(1, 18) * 512})
+    assert out["observation.environment_state"].shape == (1, 16)
+
+
+def save_tiny_policy(path: Path) -> Path:
+    """A random-weight SDP checkpoint with Push-T keypoint features and its saved pre/post-processors."""
+    from lerobot_sdp import SDPPolicy, make_sdp_pre_post_processors
+
+    cfg = tiny_config()
+    SDPPolicy(cfg).save_pretrained(path)
+    for pipeline in make_sdp_pre_post_processors(cfg, STATS):
+        pipeline.save_pretrained(path)
+    return path
+
+
+@pytest.mark.slow
+def test_lerobot_rollout_drives_pusht_sim_with_sdp(tmp_path):
+    """The real `lerobot-rollout` CLI (sync engine) runs SDP on the simulated robot at 10 Hz."""
+    policy_dir = save_tiny_policy(tmp_path / "policy")
+    stats_path = tmp_path / "rollout_stats.json"
+    duration = 3
+    cmd = [
+        str(BIN / "lerobot-rollout"),
+        "--robot.type=pusht_sim",
+        f"--robot.calibration_dir={tmp_path / 'calibration'}",
+        f"--robot.stats_path={stats_path}",
+        f"--policy.path={policy_dir}",
+        "--fps=10",
+        f"--duration={duration}",
+        "--device=cpu",
+        "--return_to_initial_position=false",
+    ]
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_LEROBOT_HOME": str(tmp_path / "lerobot_home")}
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
+    log = proc.stdout + proc.stderr
+    assert proc.returncode == 0, log[-5000:]
+    assert "SyncInferenceEngine" in log and "Rollout finished" in log
+    stats = json.loads(stats_path.read_text())
+    # paced at 10 Hz for `duration` s: about 30 actions (fewer on a slow or loaded machine)
+    assert 10 <= stats["actions_sent"] <= 10 * duration + 2, stats
+    assert stats["ignored_commands"] == 0
+    episode = stats["current_episode"]
+    assert episode["steps"] == stats["actions_sent"] and 0.0 <= episode["max_reward"] <= 1.0
+    assert "pusht_sim disconnected after" in log
