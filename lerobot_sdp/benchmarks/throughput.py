@@ -28,6 +28,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from ..lerobot_cli import lerobot_bin
+from .curves import parse_step
 
 REPO = Path(__file__).resolve().parents[2]
 STEP_LOG = re.compile(r"step:(\d+[KM]?)\b.*updt_s:([\d.]+) data_s:([\d.]+)")
@@ -53,11 +54,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--busy", type=int, default=0, help="busy-looping processes beside each run")
     p.add_argument("--extra", nargs="*", default=[], help="more lerobot-train flags for every variant")
     p.add_argument("--output_dir", type=Path, default=Path("outputs/benchmarks/throughput"))
-
-
-def parse_steps(token: str) -> int:
-    scale = {"K": 1_000, "M": 1_000_000}.get(token[-1], 1)
-    return int(float(token.rstrip("KM")) * scale)
 
 
 @contextmanager
@@ -102,7 +98,7 @@ def run_variant(args: argparse.Namespace, name: str) -> dict:
         for line in proc.stdout:
             f.write(line)
             if match := STEP_LOG.search(line):
-                step, updt, data = parse_steps(match[1]), float(match[2]), float(match[3])
+                step, updt, data = parse_step(match[1]), float(match[2]), float(match[3])
                 marks.append((time.perf_counter(), step, updt, data))
     if proc.returncode != 0 or len(marks) < 2:
         raise RuntimeError(f"lerobot-train ({name}) failed or logged fewer than 2 steps; see {log}")
