@@ -31,7 +31,7 @@ from ..lerobot_cli import lerobot_bin
 from .curves import parse_step
 
 REPO = Path(__file__).resolve().parents[2]
-STEP_LOG = re.compile(r"step:(\d+[KM]?)\b.*updt_s:([\d.]+) data_s:([\d.]+)")
+STEP_LOG = re.compile(r"step:(\d+(?:\.\d+)?[KM]?) .*updt_s:([\d.]+) data_s:([\d.]+)")
 THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OMP_WAIT_POLICY")
 VARIANTS = {
     "baseline": ({}, ["--num_workers=0"]),
