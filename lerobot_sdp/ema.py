@@ -7,18 +7,20 @@ in model.safetensors next to the raw weights and a resumed run continues the sam
 """
 
 import torch
-from torch import nn
+from torch import Tensor, nn
 
 
-def ema_decay(step: int, power: float, max_decay: float) -> float:
-    return max(0.0, min(max_decay, 1.0 - (1.0 + step) ** -power))
+def ema_decay(step: Tensor, power: float, max_decay: float) -> Tensor:
+    """The decay at optimiser step ``step`` (a 0-d tensor on the model's device: no host read)."""
+    return (1.0 - (1.0 + step.double()) ** -power).clamp(0.0, max_decay)
 
 
 @torch.no_grad()
-def ema_update(averaged: nn.Module, model: nn.Module, decay: float) -> None:
+def ema_update(averaged: nn.Module, model: nn.Module, decay: Tensor) -> None:
     """averaged <- decay * averaged + (1 - decay) * model for parameters; buffers are copied."""
     avg = [p for p in averaged.parameters()]
     new = [p.detach() for p in model.parameters()]
-    torch._foreach_lerp_(avg, new, 1.0 - decay)
+    weight = (1.0 - decay).to(avg[0].dtype)
+    torch._foreach_lerp_(avg, new, [weight] * len(avg))
     for b_avg, b_new in zip(averaged.buffers(), model.buffers(), strict=True):
         b_avg.copy_(b_new)

@@ -23,12 +23,20 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 from safetensors import safe_open
 from torch import Tensor
 
-from .buffer import Denoiser, StreamingBuffer, reverse_plan, run_reverse_steps
+from .buffer import (
+    Denoiser,
+    StreamingBuffer,
+    StreamNoise,
+    reverse_plan,
+    run_reverse_steps,
+    step_noise,
+    stream_step,
+)
 from .configuration_sdp import SDPConfig
 from .ema import ema_decay, ema_update
 from .noise_schemes import sample_levels
-from .schedule import PerSlotSchedule
-from .unet import make_variable_noise
+from .schedule import PerSlotSchedule, StepCoefficients
+from .unet import make_variable_noise, plan_embedding_cache
 from .warm_start import WarmStartReport, merged_stats, warm_start
 
 MODEL_CARD_INTRO = (
@@ -48,14 +56,63 @@ class SDPModel(DiffusionModel):
 
     def __init__(self, config: SDPConfig):
         super().__init__(config)
+        # DP compiles the U-Net module in place under `compile_model`, which renames every weight
+        # (`unet._orig_mod.`); SDP compiles its whole streaming step instead (`streaming_step_fn`),
+        # so checkpoints load the same with and without compilation.
+        self.unet = getattr(self.unet, "_orig_mod", self.unet)
         self.geometry = config.geometry
         make_variable_noise(
             self.unet, config.diffusion_step_embed_dim, self.geometry.horizon, config.step_conditioning
         )
         self.schedule = PerSlotSchedule(self.noise_scheduler, self.num_inference_steps)
+        self._compiled_stream = None
 
     def denoiser(self, global_cond: Tensor) -> Denoiser:
         return lambda sample, timesteps: self.unet(sample, timesteps, global_cond=global_cond)
+
+    def cache_step_embeddings(self, plan: list[StepCoefficients]) -> None:
+        """Let the step encoder keep the embeddings of this streaming plan (`unet.PlanEmbeddingCache`)."""
+        encoder = getattr(self.unet, "_orig_mod", self.unet).diffusion_step_encoder
+        plan_embedding_cache(encoder).keep([c.timesteps for c in plan])
+
+    def stream_step(
+        self,
+        history: dict[str, Tensor],
+        sample: Tensor,
+        plan: list[StepCoefficients],
+        noise: StreamNoise,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Everything one streaming call computes: the observation conditioning, s denoiser calls and
+        the shift (`buffer.stream_step`), plus one finite flag per observation key, read by the caller
+        after the call so that checking costs no host sync inside it. Compiled as one graph with
+        `compile_model`."""
+        finite = finite_flags(history)
+        global_cond = self._prepare_global_conditioning(history)
+        chunk, next_sample = stream_step(
+            self.schedule, self.geometry, self.denoiser(global_cond), sample, plan, noise
+        )
+        return chunk, next_sample, finite
+
+    def streaming_step_fn(self, device: torch.device, compiled: bool):
+        """`stream_step`, or compiled as one graph with no breaks. On CUDA, "reduce-overhead" captures
+        the call as a CUDA graph; elsewhere that mode falls back to "default"."""
+        if not compiled:
+            return self.stream_step
+        cuda_graphs = device.type == "cuda" and self.config.compile_mode == "reduce-overhead"
+        if self._compiled_stream is None:
+            mode = self.config.compile_mode
+            if mode == "reduce-overhead" and not cuda_graphs:
+                mode = "default"
+            self._compiled_stream = torch.compile(self.stream_step, mode=mode, fullgraph=True, dynamic=False)
+        if not cuda_graphs:
+            return self._compiled_stream
+
+        def replay(*args):
+            # a CUDA graph's outputs are overwritten by its next replay: keep copies
+            torch.compiler.cudagraph_mark_step_begin()
+            return tuple(out.clone() for out in self._compiled_stream(*args))
+
+        return replay
 
     def conditional_sample(
         self, batch_size: int, global_cond: Tensor, generator: torch.Generator | None = None
@@ -64,8 +121,10 @@ class SDPModel(DiffusionModel):
         shape = (batch_size, self.geometry.horizon, self.config.action_feature.shape[0])
         sample = torch.randn(shape, generator=generator, device=global_cond.device, dtype=global_cond.dtype)
         n = self.num_inference_steps
-        plan = reverse_plan(self.schedule, torch.full((self.geometry.horizon,), n, device=sample.device), n)
-        return run_reverse_steps(self.schedule, self.denoiser(global_cond), sample, plan, generator)
+        k_start = torch.full((self.geometry.horizon,), n, device=sample.device)
+        plan = reverse_plan(self.schedule, k_start, n, batch_size)
+        noise = step_noise(plan, sample, generator)
+        return run_reverse_steps(self.schedule, self.denoiser(global_cond), sample, plan, noise)
 
     def compute_loss(self, batch: dict[str, Tensor]) -> Tensor:
         """Paper Eq. 5: MSE between the noise (or clean actions) and the prediction, levels per slot."""
@@ -77,7 +136,6 @@ class SDPModel(DiffusionModel):
             )
         global_cond = self._prepare_global_conditioning(batch)
         levels = sample_levels(self.config.noise_schemes, trajectory.shape[0], self.geometry, self.schedule)
-        levels = levels.to(trajectory.device)
         eps = torch.randn_like(trajectory)
         pred = self.unet(self.schedule.add_noise(trajectory, eps, levels), levels, global_cond=global_cond)
         target = eps if self.config.prediction_type == "epsilon" else trajectory
@@ -86,6 +144,11 @@ class SDPModel(DiffusionModel):
             mask = (~batch["action_is_pad"]).unsqueeze(-1)
             return (loss * mask).sum() / (mask.sum() * loss.shape[-1]).clamp_min(1)
         return loss.mean()
+
+
+def finite_flags(history: dict[str, Tensor]) -> Tensor:
+    """One flag per observation key: True where every value is finite (computed on the device)."""
+    return torch.stack([torch.isfinite(value).all() for value in history.values()])
 
 
 def state_to_action_map(config: SDPConfig, dataset_stats: dict | None) -> Tensor:
@@ -162,9 +225,9 @@ class SDPPolicy(PreTrainedPolicy):
         """Called by lerobot-train after every optimizer step: advance the EMA."""
         if self.ema_model is None:
             return
-        decay = ema_decay(int(self.ema_step), self.config.ema_power, self.config.ema_max_decay)
+        decay = ema_decay(self.ema_step, self.config.ema_power, self.config.ema_max_decay)
         ema_update(self.ema_model, self.model, decay)
-        self.ema_step += 1
+        self.ema_step += 1  # on the device: no host read per training step
 
     def reset(self) -> None:
         """Drop the observation history, the queued actions and the streaming buffer."""
@@ -246,23 +309,46 @@ class SDPPolicy(PreTrainedPolicy):
         (B, n_action_steps, A) and roll the buffer. The noisy tail stays internal.
 
         Online (after select_action filled the queues) the stacked history is used; offline, `batch`
-        is a dataloader batch of (B, n_obs_steps, ...) observations (`_offline_history`)."""
+        is a dataloader batch of (B, n_obs_steps, ...) observations (`_offline_history`).
+
+        Wrapped in `torch.compile` (`lerobot-rollout --use_torch_compile`), the buffer bookkeeping
+        stays eager and the streaming step runs compiled, as with `compile_model`."""
+        compiled = self.config.compile_model or torch.compiler.is_compiling()
+        return self._predict_action_chunk(batch, generator, compiled, **kwargs)
+
+    @torch.compiler.disable
+    def _predict_action_chunk(
+        self, batch: dict[str, Tensor], generator: torch.Generator | None, compiled: bool, **kwargs
+    ) -> Tensor:
         reject_unknown_kwargs("predict_action_chunk", kwargs)
         if self._queues[OBS_STATE]:
             history = {k: torch.stack(list(q), dim=1) for k, q in self._queues.items() if k != ACTION}
         else:
             history = self._offline_history(batch)
-        for key, value in history.items():  # once per chunk: on a GPU this check synchronises
-            if not torch.isfinite(value).all():
-                raise ValueError(f"Observation `{key}` contains NaN or inf; refusing to act on it.")
         batch_size = history[OBS_STATE].shape[0]
         if self._buffer.batch_size not in (None, batch_size):
             self._buffer.clear()
         model = self._sampling_model()
-        global_cond = model._prepare_global_conditioning(history)
-        if self._buffer.sample is None:
+        if self._buffer.sample is None:  # a new stream: never prime from a bad observation
+            self._refuse_non_finite(history, finite_flags(history))
+            global_cond = model._prepare_global_conditioning(history)
             self._buffer.prime(self._primer(model, history, global_cond, generator), generator)
-        return self._buffer.advance(model.denoiser(global_cond), generator)
+        run = model.streaming_step_fn(history[OBS_STATE].device, compiled)
+
+        def step(sample: Tensor, plan: list[StepCoefficients], noise: StreamNoise) -> tuple[Tensor, Tensor]:
+            model.cache_step_embeddings(plan)
+            chunk, next_sample, finite = run(history, sample, plan, noise)
+            self._refuse_non_finite(history, finite)  # the one host read, after the chunk is computed
+            return chunk, next_sample
+
+        return self._buffer.run(step, generator)
+
+    @staticmethod
+    def _refuse_non_finite(history: dict[str, Tensor], finite: Tensor) -> None:
+        """Raise, naming the keys, when an observation held NaN or inf (the buffer is left as it was)."""
+        bad = [f"`{key}`" for key, ok in zip(history, finite.tolist(), strict=True) if not ok]
+        if bad:
+            raise ValueError(f"Observation {', '.join(bad)} contains NaN or inf; refusing to act on it.")
 
     def _primer(
         self,

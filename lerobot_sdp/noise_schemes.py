@@ -10,9 +10,11 @@ level per slot) and Fig. "Trajectory Noise Corruptions"; sdp-algorithm.md, secti
   chunks of the sample, so training sees exactly the staircases that streaming inference visits.
 
 A mixture draws one scheme *per sample* with the given weights (the authors drew one per batch;
-per sample gives every batch the mixture's proportions). All levels are training timesteps.
+per sample gives every batch the mixture's proportions). All levels are training timesteps, drawn
+on the device the schedule's tables live on (the model's): no host round trip per training step.
 """
 
+import itertools
 from dataclasses import dataclass, fields
 
 import torch
@@ -45,24 +47,31 @@ class NoiseSchemeWeights:
 
 
 def constant_levels(batch_size: int, geometry: ChunkGeometry, schedule: PerSlotSchedule) -> Tensor:
-    t = torch.randint(schedule.num_train_timesteps, (batch_size, 1))
+    t = torch.randint(schedule.num_train_timesteps, (batch_size, 1), device=device_of(schedule))
     return t.expand(batch_size, geometry.horizon)
 
 
 def linear_levels(batch_size: int, geometry: ChunkGeometry, schedule: PerSlotSchedule) -> Tensor:
-    ramp = torch.linspace(0, schedule.num_train_timesteps - 1, geometry.horizon).round().long()
-    return ramp.expand(batch_size, geometry.horizon)
+    ramp = torch.linspace(0, schedule.num_train_timesteps - 1, geometry.horizon, device=device_of(schedule))
+    return ramp.round().long().expand(batch_size, geometry.horizon)
 
 
 def independent_levels(batch_size: int, geometry: ChunkGeometry, schedule: PerSlotSchedule) -> Tensor:
-    return torch.randint(schedule.num_train_timesteps, (batch_size, geometry.horizon))
+    return torch.randint(
+        schedule.num_train_timesteps, (batch_size, geometry.horizon), device=device_of(schedule)
+    )
 
 
 def chunkwise_levels(batch_size: int, geometry: ChunkGeometry, schedule: PerSlotSchedule) -> Tensor:
     s = geometry.steps_per_call
-    offset = torch.randint(1, s + 1, (batch_size, 1))  # shared by all chunks of a sample
-    k = geometry.slot_chunk.unsqueeze(0) * s + offset
-    return schedule.train_timesteps(k.to(schedule.timestep_table.device)).cpu()
+    device = device_of(schedule)
+    offset = torch.randint(1, s + 1, (batch_size, 1), device=device)  # shared by all chunks of a sample
+    k = geometry.slot_chunk.to(device).unsqueeze(0) * s + offset
+    return schedule.train_timesteps(k)
+
+
+def device_of(schedule: PerSlotSchedule) -> torch.device:
+    return schedule.timestep_table.device
 
 
 SCHEMES = {
@@ -79,6 +88,12 @@ def sample_levels(
     """Training timesteps (B, horizon) from the weighted mixture: one scheme drawn per sample."""
     w = weights.as_dict()
     active = [name for name in SCHEMES if w[name] > 0]
-    choice = torch.multinomial(torch.tensor([w[name] for name in active]), batch_size, replacement=True)
+    device = device_of(schedule)
+    # inverse CDF against Python floats: no weights tensor to copy to the device every step
+    bounds = list(itertools.accumulate(w[name] for name in active))
+    u = torch.rand(batch_size, device=device) * bounds[-1]
+    choice = torch.zeros(batch_size, dtype=torch.long, device=device)
+    for bound in bounds[:-1]:
+        choice += u >= bound
     levels = torch.stack([SCHEMES[name](batch_size, geometry, schedule) for name in active])
-    return levels[choice, torch.arange(batch_size)]
+    return levels[choice, torch.arange(batch_size, device=device)]

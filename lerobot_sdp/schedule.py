@@ -63,12 +63,15 @@ class PerSlotSchedule(nn.Module):
         """Gather every per-slot coefficient of one reverse step from steps-remaining ``k`` (..., T).
 
         A streaming call visits the same s level patterns every time, so callers compute these once
-        and reuse them: a step is then a handful of tensor ops (the buffer's bookkeeping budget)."""
+        and reuse them: a step is then a handful of tensor ops (the buffer's bookkeeping budget).
+        ``active`` is None when every slot steps (always, while streaming), so that the step skips its
+        ``torch.where``; deciding that reads ``k`` once here, never per step."""
         t, t_prev = self.train_timesteps(k), self.train_timesteps((k - 1).clamp(min=0))
         abar, abar_prev = self.alpha_bar(t), self.alpha_bar(t_prev)
+        active = (k > 0).unsqueeze(-1)
         common = dict(
             timesteps=t,
-            active=(k > 0).unsqueeze(-1),
+            active=None if bool(active.all()) else active,
             sqrt_abar=abar.sqrt(),
             sqrt_one_minus_abar=(1 - abar).sqrt(),
         )
@@ -102,7 +105,7 @@ class PerSlotSchedule(nn.Module):
             prev = prev + c.eps_coef * eps
         if c.noise_std is not None:
             prev = prev + c.noise_std * (gaussian_like(sample, generator) if noise is None else noise)
-        return torch.where(c.active, prev, sample)
+        return prev if c.active is None else torch.where(c.active, prev, sample)
 
     def step(self, model_output: Tensor, k: Tensor, sample: Tensor, noise: Tensor | None = None) -> Tensor:
         """One reverse step from per-slot steps-remaining ``k`` (B, T)."""
@@ -117,10 +120,11 @@ def gaussian_like(x: Tensor, generator: torch.Generator | None = None) -> Tensor
 
 class StepCoefficients(NamedTuple):
     """Per-slot coefficients of one reverse step, shape (..., T, 1) (timesteps: (..., T)).
-    prev = x0_coef * x0 + xt_coef * x_t + eps_coef * eps + noise_std * z, unused terms None."""
+    prev = x0_coef * x0 + xt_coef * x_t + eps_coef * eps + noise_std * z, unused terms None;
+    ``active`` (slots with k > 0) is None when every slot steps."""
 
     timesteps: Tensor
-    active: Tensor
+    active: Tensor | None
     sqrt_abar: Tensor
     sqrt_one_minus_abar: Tensor
     x0_coef: Tensor

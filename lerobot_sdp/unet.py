@@ -15,6 +15,10 @@ applies its FiLM (its own ``cond_encoder``) per position, the conditioning avera
 block's temporal length. With every slot at one level this is exactly DP's network, at any horizon.
 Both pieces are LeRobot's classes with one method overridden, swapped in place, so the state-dict
 keys stay DP's.
+
+A streaming call only ever visits s = N/h level patterns, so both step encoders keep the
+embeddings of a streaming plan's timesteps (``PlanEmbeddingCache``) instead of recomputing the
+sinusoidal embedding and MLP on every denoiser call.
 """
 
 import torch
@@ -25,6 +29,43 @@ from lerobot.policies.diffusion.modeling_diffusion import (
     DiffusionSinusoidalPosEmb,
 )
 from torch import Tensor, nn
+
+
+class PlanEmbeddingCache:
+    """Step embeddings of a streaming plan's timesteps tensors, looked up by identity.
+
+    The buffer passes the same s timesteps tensors (its plan's, one per step) on every call, so an
+    embedding computed once serves every later call. An entry holds its tensor, so its id cannot be
+    reused while cached, and is valid while the encoder's weights are the same storage at the same
+    version: moving or casting the model, loading weights or an optimiser step recompute it. Only
+    the plan given to ``keep`` is cached (never training batches), only without autograd, and never
+    inside a compiled graph (which computes the embedding itself)."""
+
+    def __init__(self):
+        self._entries: dict[int, tuple[Tensor, tuple, Tensor | None]] = {}
+
+    def keep(self, plan_timesteps: list[Tensor]) -> None:
+        """Cache these tensors' embeddings from now on (replacing another plan's)."""
+        if any(self._entries.get(id(t), (None,))[0] is not t for t in plan_timesteps):
+            self._entries = {id(t): (t, (), None) for t in plan_timesteps}
+
+    def embed(self, encoder: nn.Module, timesteps: Tensor, compute) -> Tensor:
+        if torch.compiler.is_compiling() or torch.is_grad_enabled():
+            return compute(timesteps)
+        entry = self._entries.get(id(timesteps))
+        if entry is None or entry[0] is not timesteps:
+            return compute(timesteps)
+        key = tuple((p.data_ptr(), p.dtype, p._version) for p in encoder.parameters())
+        if entry[1] != key:
+            entry = self._entries[id(timesteps)] = (timesteps, key, compute(timesteps))
+        return entry[2]
+
+
+def plan_embedding_cache(encoder: nn.Module) -> PlanEmbeddingCache:
+    """The encoder's cache, created on first use (LeRobot's encoder gets it by a class swap)."""
+    if "_plan_embeddings" not in encoder.__dict__:
+        encoder.__dict__["_plan_embeddings"] = PlanEmbeddingCache()
+    return encoder.__dict__["_plan_embeddings"]
 
 
 class PerSlotStepEncoder(nn.Module):
@@ -46,7 +87,18 @@ class PerSlotStepEncoder(nn.Module):
                 f"The variable-noise U-Net needs one level per slot, shape (B, {self.horizon}); "
                 f"got {tuple(timesteps.shape)}."
             )
+        return plan_embedding_cache(self).embed(self, timesteps, self.encode)
+
+    def encode(self, timesteps: Tensor) -> Tensor:
         return self.mlp(self.embed(timesteps).flatten(start_dim=1))
+
+
+class PerSlotDPStepEncoder(nn.Sequential):
+    """LeRobot's step encoder (sinusoidal, Linear, Mish, Linear) applied to every slot's level,
+    (B, T) -> (B, T, E), with a streaming plan's embeddings cached."""
+
+    def forward(self, timesteps: Tensor) -> Tensor:
+        return plan_embedding_cache(self).embed(self, timesteps, super().forward)
 
 
 class PerPositionFiLMBlock(DiffusionConditionalResidualBlock1d):
@@ -92,6 +144,7 @@ def make_variable_noise(unet: nn.Module, embed_dim: int, horizon: int, mode: str
         base.diffusion_step_encoder = PerSlotStepEncoder(embed_dim, horizon)
     elif mode == "film_per_slot":
         base.__class__ = FiLMPerSlotUnet1d
+        base.diffusion_step_encoder.__class__ = PerSlotDPStepEncoder
         for module in base.modules():
             if type(module) is DiffusionConditionalResidualBlock1d:
                 module.__class__ = PerPositionFiLMBlock
