@@ -282,9 +282,15 @@ class SDPPolicy(PreTrainedPolicy):
         if queued and queued[-1].shape[0] != batch[OBS_STATE].shape[0]:
             logging.warning("SDP: the batch size changed without reset(); starting a new stream.")
             self.reset()
+        before = {key: queue.copy() for key, queue in self._queues.items()}
         self._queues = populate_queues(self._queues, self._stack_cameras(batch))
         if not self._queues[ACTION]:
-            self._queues[ACTION].extend(self.predict_action_chunk(batch, generator=generator).transpose(0, 1))
+            try:
+                chunk = self.predict_action_chunk(batch, generator=generator)
+            except ValueError:  # a refused observation leaves the policy as it was
+                self._queues = before
+                raise
+            self._queues[ACTION].extend(chunk.transpose(0, 1))
         return self._queues[ACTION].popleft()
 
     def _offline_history(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:

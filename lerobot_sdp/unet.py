@@ -37,7 +37,8 @@ class PlanEmbeddingCache:
     The buffer passes the same s timesteps tensors (its plan's, one per step) on every call, so an
     embedding computed once serves every later call. An entry holds its tensor, so its id cannot be
     reused while cached, and is valid while the encoder's weights are the same storage at the same
-    version: moving or casting the model, loading weights or an optimiser step recompute it. Only
+    version and autocast is as it was: moving or casting the model, loading weights, an optimiser
+    step or entering autocast recompute it. Only
     the plan given to ``keep`` is cached (never training batches), only without autograd, and never
     inside a compiled graph (which computes the embedding itself)."""
 
@@ -55,10 +56,21 @@ class PlanEmbeddingCache:
         entry = self._entries.get(id(timesteps))
         if entry is None or entry[0] is not timesteps:
             return compute(timesteps)
-        key = tuple((p.data_ptr(), p.dtype, p._version) for p in encoder.parameters())
+        key = (weights_key(encoder), autocast_key(timesteps.device.type))
         if entry[1] != key:
             entry = self._entries[id(timesteps)] = (timesteps, key, compute(timesteps))
         return entry[2]
+
+
+def weights_key(module: nn.Module) -> tuple:
+    """Changes when a weight is moved, cast, replaced or updated in place."""
+    return tuple((p.data_ptr(), p.dtype, p._version) for p in module.parameters())
+
+
+def autocast_key(device_type: str) -> torch.dtype | None:
+    """The dtype autocast computes in on this device (None when off): an embedding made under
+    autocast is not the embedding made without it."""
+    return torch.get_autocast_dtype(device_type) if torch.is_autocast_enabled(device_type) else None
 
 
 def plan_embedding_cache(encoder: nn.Module) -> PlanEmbeddingCache:

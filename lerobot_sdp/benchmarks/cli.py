@@ -10,10 +10,11 @@ from types import ModuleType
 
 from lerobot.utils.utils import init_logging
 
-from . import latency, quality, throughput, train_profile
+from . import compiled, latency, quality, throughput, train_profile
 
 SUBCOMMANDS: dict[str, ModuleType] = {
     "latency": latency,
+    "compiled": compiled,
     "quality": quality,
     "train-profile": train_profile,
     "throughput": throughput,

@@ -1,0 +1,206 @@
+"""Eager against compiled: time per chunk of SDP and LeRobot's Diffusion Policy, and per denoiser call
+against the memory-bandwidth floor.
+
+For every batch size, four policies with the same weights per family run side by side: SDP eager, SDP
+with `compile_model` (its whole streaming step compiled as one graph; a CUDA graph on a GPU), DP eager
+and DP with LeRobot's `compile_model` (its U-Net compiled). Compilation happens in the warm-up cycles,
+which are discarded; the steady cycles alternate between the four (and reverse their order every
+cycle), so a shared machine disturbs all alike. Each cycle times the `select_action` call that samples
+a chunk. Compiled code cannot carry forward hooks, so the time per denoiser call (NFE) here is the
+chunk time divided by the NFEs per chunk (N/h for SDP, N for DP): an upper bound that includes the
+bookkeeping (which `lerobot-sdp-bench latency` measures apart, eagerly, with hooks).
+
+The floor: one denoiser call reads every U-Net weight at least once, so it cannot take less than
+(U-Net parameter bytes) / (memory bandwidth). The bandwidth is measured here, as the copy rate of a
+buffer much larger than the caches (bytes read + written per second).
+
+SDP's eager and compiled streams get the same observations and generator seeds: their actions are
+compared (max abs difference, reported).
+"""
+
+import argparse
+import json
+import logging
+import statistics
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from .latency import (
+    OBSERVATIONS,
+    UNET_PRESETS,
+    Case,
+    Clock,
+    Sampler,
+    build_policies,
+    cpu_threads,
+    environment,
+    expected_denoiser_calls,
+    observation_stream,
+)
+
+logger = logging.getLogger(__name__)
+JSON_NAME = "compiled.json"
+NAMES = ("sdp_eager", "sdp_compiled", "dp_eager", "dp_compiled")
+
+
+def memory_bandwidth(device: torch.device, megabytes: int = 512, repeats: int = 5) -> float:
+    """Bytes per second moved by copying a large buffer (read + write), median of ``repeats``."""
+    src = torch.empty(megabytes * 2**20 // 4, dtype=torch.float32, device=device).uniform_()
+    dst = torch.empty_like(src)
+    clock, times = Clock(device), []
+    for _ in range(repeats + 1):  # the first copy pages the buffers in
+        start = clock.now()
+        dst.copy_(src)
+        times.append(clock.now() - start)
+    return 2 * src.numel() * src.element_size() / statistics.median(times[1:])
+
+
+def unet_bytes(policy) -> int:
+    unet = policy.diffusion.unet if hasattr(policy, "diffusion") else policy.model.unet
+    unet = getattr(unet, "_orig_mod", unet)
+    return sum(p.numel() * p.element_size() for p in unet.parameters())
+
+
+def build(args: argparse.Namespace, batch_size: int) -> dict:
+    case = Case(args.device, batch_size, args.sampler, args.n_chunks)
+    args.compile = False
+    sdp, dp = build_policies(args, case)
+    args.compile = True
+    sdp_compiled, dp_compiled = build_policies(args, case)  # same seed: the same weights
+    return dict(zip(NAMES, (sdp, sdp_compiled, dp, dp_compiled), strict=True))
+
+
+def run_batch(args: argparse.Namespace, batch_size: int, progress: tqdm) -> dict:
+    policies = build(args, batch_size)
+    device = torch.device(args.device)
+    clock = Clock(device)
+    features = OBSERVATIONS[args.obs]
+    streams = {
+        name: observation_stream(features, batch_size, args.device, torch.Generator().manual_seed(args.seed))
+        for name in NAMES
+    }
+    generators = {name: torch.Generator(device) for name in NAMES if name.startswith("sdp")}
+    times: dict[str, list[float]] = {name: [] for name in NAMES}
+    actions: dict[str, list[torch.Tensor]] = {name: [] for name in generators}
+
+    def cycle(name: str, record: bool) -> None:
+        policy = policies[name]
+        kwargs = {"generator": generators[name]} if name in generators else {}
+        for i in range(args.n_action_steps):
+            start = clock.now()
+            action = policy.select_action(next(streams[name]), **kwargs)
+            if i == 0 and record:
+                times[name].append(clock.now() - start)
+            if name in actions and record:
+                actions[name].append(action.float().cpu())
+        progress.update()
+
+    with torch.inference_mode():
+        for name, policy in policies.items():
+            policy.reset()
+            for _ in range(args.warmup_chunks):  # compiles
+                cycle(name, record=False)
+        for name, policy in policies.items():
+            policy.reset()
+            if name in generators:
+                generators[name].manual_seed(args.seed)
+        for step in range(args.steps):
+            for name in NAMES if step % 2 else NAMES[::-1]:
+                cycle(name, record=True)
+    return summarise(policies, times, actions)
+
+
+def summarise(policies: dict, times: dict[str, list[float]], actions: dict[str, list[torch.Tensor]]) -> dict:
+    out = {}
+    for name, policy in policies.items():
+        chunk_ms = statistics.median(times[name]) * 1000
+        nfe = expected_denoiser_calls(policy)
+        out[name] = {
+            "chunk_ms_p50": chunk_ms,
+            "chunk_ms_samples": [t * 1000 for t in times[name]],
+            "nfe_per_chunk": nfe,
+            "per_nfe_ms": chunk_ms / nfe,
+        }
+    eager, compiled = torch.stack(actions["sdp_eager"]), torch.stack(actions["sdp_compiled"])
+    out["sdp_compiled_speedup"] = out["sdp_eager"]["chunk_ms_p50"] / out["sdp_compiled"]["chunk_ms_p50"]
+    out["dp_compiled_speedup"] = out["dp_eager"]["chunk_ms_p50"] / out["dp_compiled"]["chunk_ms_p50"]
+    out["sdp_compiled_max_abs_action_diff"] = float((eager - compiled).abs().max())
+    out["unet_bytes"] = unet_bytes(policies["sdp_eager"])
+    return out
+
+
+def markdown_table(report: dict) -> str:
+    floor_ms = report["bandwidth_floor_per_nfe_ms"]
+    header = (
+        "| obs | batch | sampler | h | SDP eager / compiled ms per chunk | speedup | DP eager / compiled ms "
+        "| speedup | SDP compiled / DP compiled | per-NFE compiled SDP ms | floor ms | x floor "
+        "| max abs action diff |"
+    )
+    lines = [header, "|" + "---|" * (header.count("|") - 1)]
+    s = report["settings"]
+    for r in report["results"]:
+        per_nfe = r["sdp_compiled"]["per_nfe_ms"]
+        lines.append(
+            f"| {s['obs']} | {r['batch_size']} | {s['sampler']} | {s['n_chunks']} "
+            f"| {r['sdp_eager']['chunk_ms_p50']:.1f} / {r['sdp_compiled']['chunk_ms_p50']:.1f} "
+            f"| {r['sdp_compiled_speedup']:.2f}x "
+            f"| {r['dp_eager']['chunk_ms_p50']:.1f} / {r['dp_compiled']['chunk_ms_p50']:.1f} "
+            f"| {r['dp_compiled_speedup']:.2f}x "
+            f"| {r['sdp_compiled']['chunk_ms_p50'] / r['dp_compiled']['chunk_ms_p50']:.3f} "
+            f"| {per_nfe:.2f} | {floor_ms:.2f} | {per_nfe / floor_ms:.1f} "
+            f"| {r['sdp_compiled_max_abs_action_diff']:.1e} |"
+        )
+    return "\n".join(lines)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add = parser.add_argument
+    add("--output_dir", type=Path, default=Path("outputs/benchmarks/compiled"))
+    add("--overwrite", action="store_true", help=f"replace an existing {JSON_NAME} in --output_dir")
+    add("--obs", choices=sorted(OBSERVATIONS), default="state")
+    add("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    add("--batch_sizes", nargs="+", type=int, default=[1, 64])
+    add("--sampler", type=Sampler.parse, default=Sampler("DDIM", 16), help="e.g. DDPM100, DDIM16")
+    add("--n_chunks", type=int, default=2, help="SDP's h")
+    add("--steps", type=int, default=10, help="steady chunks timed per policy")
+    add("--warmup_chunks", type=int, default=2, help="discarded chunk cycles per policy (compilation)")
+    add("--n_obs_steps", type=int, default=2)
+    add("--n_action_steps", type=int, default=8)
+    add("--kernel_size", type=int, default=5)
+    add("--quick", action="store_true", help="CI-sized run: tiny U-Net, batch 1, DDIM4, one timed chunk")
+    add("--num_threads", type=int, help="torch CPU threads (default: torch's choice)")
+    add("--seed", type=int, default=0)
+
+
+def run(args: argparse.Namespace) -> dict:
+    if (args.output_dir / JSON_NAME).exists() and not args.overwrite:
+        raise SystemExit(f"{args.output_dir / JSON_NAME} exists: pass --overwrite, or another --output_dir.")
+    if args.steps < 1 or args.warmup_chunks < 1:
+        raise SystemExit("--steps and --warmup_chunks must be >= 1 (the warm-up compiles).")
+    args.output_dir.mkdir(parents=True, exist_ok=True)
+    args.action_primer = "zero"
+    if args.quick:
+        args.batch_sizes, args.sampler, args.steps, args.warmup_chunks = [1], Sampler("DDIM", 4), 1, 1
+    for name, value in UNET_PRESETS["quick" if args.quick else args.obs].items():
+        setattr(args, name, value)
+    with cpu_threads(args.num_threads):
+        bandwidth = memory_bandwidth(torch.device(args.device))
+        report = {
+            "benchmark": "compiled",
+            "environment": environment(argparse.Namespace(device=[args.device])),
+            "settings": {k: str(v) if isinstance(v, Path | Sampler) else v for k, v in vars(args).items()},
+            "memory_bandwidth_gb_s": bandwidth / 1e9,
+            "results": [],
+        }
+        total = len(args.batch_sizes) * len(NAMES) * (args.warmup_chunks + args.steps)
+        with tqdm(total=total, unit="chunk", desc="eager vs compiled") as progress:
+            for batch_size in args.batch_sizes:
+                result = run_batch(args, batch_size, progress)
+                report["results"].append({"batch_size": batch_size, **result})
+                report["bandwidth_floor_per_nfe_ms"] = result["unet_bytes"] / bandwidth * 1000
+                (args.output_dir / JSON_NAME).write_text(json.dumps(report, indent=2))
+    print(markdown_table(report))
+    logger.info("Wrote %s", args.output_dir / JSON_NAME)
+    return report
