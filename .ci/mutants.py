@@ -268,8 +268,7 @@ MUTANTS = [
     M("S21", "schedule.py",
       "active=None if bool(active.all()) else active,",
       "active=active,",
-      "the mask kept when every slot steps",
-      equivalent="torch.where with an all-true mask returns the stepped sample: only the cost changes"),
+      "the all-true mask kept while streaming (a torch.where per step: the waste issue 13 removed)"),
     # --- noise_schemes.py: chunk-wise bands ----------------------------------------------------------
     M("N01", "noise_schemes.py",
       "offset = torch.randint(1, s + 1, (batch_size, 1), device=device)",

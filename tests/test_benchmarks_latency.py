@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from lerobot_sdp.benchmarks import cli, latency
+from lerobot_sdp.benchmarks import cli, latency, latency_measure
 
 SAMPLERS = {"DDIM4": 4, "DDPM6": 6}
 N_CHUNKS = [1, 2, 4]
@@ -98,7 +98,9 @@ def test_an_existing_report_is_kept_without_overwrite(tmp_path):
 def test_dp_gets_the_same_denoiser_and_horizon_as_sdp():
     args = cli.build_parser().parse_args(["latency", "--quick"])
     latency.resolve_defaults(args)
-    sdp, dp = latency.build_policies(args, latency.Case("cpu", 1, latency.Sampler("DDIM", 4), 2))
+    sdp, dp = latency_measure.build_policies(
+        args, latency_measure.Case("cpu", 1, latency_measure.Sampler("DDIM", 4), 2)
+    )
     assert dp.config.horizon == sdp.config.horizon == 20  # 1 past + 2 chunks x 8 + 3 padding
     for name in (
         "down_dims",
@@ -111,7 +113,7 @@ def test_dp_gets_the_same_denoiser_and_horizon_as_sdp():
     assert dp.config.num_inference_steps == sdp.config.num_inference_steps == 4
 
     def unet_shapes(policy):
-        (unet, *_) = latency.denoisers(policy)
+        (unet, *_) = latency_measure.denoisers(policy)
         return {
             k: v.shape for k, v in unet.state_dict().items() if not k.startswith("diffusion_step_encoder")
         }

@@ -260,6 +260,29 @@ def test_advance_contents_per_slot_with_a_large_batch(kind):
         assert_gaussian(buffer.sample, mean, var, f"{kind} after shift {oracle.chunk}")
 
 
+def test_past_re_noise_and_appended_tail_are_independent_draws():
+    """The re-noised past slots and the appended N(0, I) slots get their own noise: over a large batch
+    the standardised past residuals are uncorrelated with every appended slot."""
+    to, tb, h, n, down = 3, 2, 4, 100, 4  # 2 past slots
+    buffer, ref = build("DDIM", "sample", to, tb, h, n, down)
+    batch = 20_000
+    truth = true_actions(1, 2 * tb + ref.horizon, seed=13).expand(batch, -1, -1)
+    oracle = Oracle(truth, ref, "sample")
+    buffer.prime(oracle.x0(), torch.Generator().manual_seed(9))
+    buffer.advance(oracle, torch.Generator().manual_seed(10))
+    oracle.chunk += 1
+    a = ref.abar(ref.level[: ref.n_past])
+    past = (buffer.sample[:, : ref.n_past].double() - a.sqrt() * oracle.x0()[:, : ref.n_past]) / (
+        1 - a
+    ).sqrt()
+    tail = buffer.sample[:, ref.n_past + (h - 1) * tb :].double()
+    for i in range(past.shape[1]):
+        for j in range(tail.shape[1]):
+            for d in range(A):
+                r = torch.corrcoef(torch.stack([past[:, i, d], tail[:, j, d]]))[0, 1].item()
+                assert abs(r) < Z / math.sqrt(batch), f"past slot {i} and tail slot {j}, dim {d}: r = {r:.3f}"
+
+
 # --- randomness -----------------------------------------------------------------------------------
 
 

@@ -27,7 +27,7 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from .latency import (
+from .latency_measure import (
     OBSERVATIONS,
     UNET_PRESETS,
     Case,
@@ -35,10 +35,10 @@ from .latency import (
     Sampler,
     build_policies,
     cpu_threads,
-    environment,
     expected_denoiser_calls,
     observation_stream,
 )
+from .latency_report import environment
 
 logger = logging.getLogger(__name__)
 JSON_NAME = "compiled.json"

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from ..lerobot_cli import evaluate
 from .curves import episode_stats
-from .latency import Sampler
+from .latency_measure import Sampler
 from .stream_cost import stream_cost
 
 SAMPLERS = {

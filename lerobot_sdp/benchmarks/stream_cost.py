@@ -8,7 +8,7 @@ import torch
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.policies.factory import get_policy_class
 
-from .latency import CallProbe, denoisers
+from .latency_measure import CallProbe, denoisers
 
 
 def load_policy(model_dir: Path, device: str = "cpu", overrides: dict | None = None):
