@@ -61,6 +61,21 @@ def test_tiny_comparison_runs_resumes_and_reports(tmp_path, capsys):
     cli.main([*argv, "--status"])
     out = capsys.readouterr().out
     assert out.count("evaluated") == 3
+    # warm starts from the trained DP: fine-tuned runs log what they copied, scratch runs copy nothing
+    warm_argv = [a if a != "comparison" else "warmstart" for a in argv if a not in ("--sweep",)]
+    cli.main(warm_argv)
+    rows = json.loads((tmp_path / "q" / "results.json").read_text())["rows"]
+    assert {"warm_flatten", "warm_film", "scratch_flatten_short", "scratch_film_short"} <= set(rows)
+    for name in ("warm_flatten", "warm_film"):
+        log = (tmp_path / "q" / "runs" / name / "train.log").read_text()
+        assert "Warm start from the Diffusion Policy checkpoint" in log and "copied" in log
+    assert "Warm start" not in (tmp_path / "q" / "runs" / "scratch_film_short" / "train.log").read_text()
+    assert "### Warm start from the trained DP" in (tmp_path / "q" / "results.md").read_text()
+
+
+def test_warm_start_runs_need_the_trained_dp(tmp_path):
+    with pytest.raises(SystemExit, match="run `--runs comparison` with this --output_dir first"):
+        cli.main(["quality", "--budget", "tiny", "--runs", "warmstart", "--output_dir", str(tmp_path)])
 
 
 def test_ablations_share_one_model_for_the_primers():

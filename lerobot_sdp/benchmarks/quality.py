@@ -139,6 +139,26 @@ def ablation_runs(budget: Budget, device: str) -> list[Run]:
     return runs
 
 
+def warmstart_runs(budget: Budget, device: str, dp_model: Path) -> list[Run]:
+    """SDP h = 2 fine-tuned from the comparison's trained DP for a tenth of its steps, with the paper's
+    step encoder and with per-slot FiLM, and both trained from scratch for the same steps (issue 12)."""
+    steps = max(1, budget.steps // 10)
+    base = sdp_args(budget, device, 2)
+    init = [f"--policy.init_from={dp_model}"]
+    film = ["--policy.step_conditioning=film_per_slot"]
+    return [
+        Run("warm_flatten", base + init, steps),
+        Run("warm_film", base + init + film, steps),
+        Run("scratch_flatten_short", base, steps),
+        Run("scratch_film_short", base + film, steps),
+    ]
+
+
+def dp_model(output_dir: Path) -> Path:
+    """The comparison's final DP model (LeRobot's `last` checkpoint), where the warm starts begin."""
+    return output_dir / "runs" / "dp" / "train" / "checkpoints" / "last" / "pretrained_model"
+
+
 def run_dir(output_dir: Path, run: Run) -> Path:
     return output_dir / "runs" / run.name
 
@@ -222,6 +242,10 @@ def markdown(rows: dict[str, dict], budget_name: str, budget: Budget) -> str:
 
     out = [f"Budget `{budget_name}`: {asdict(budget)}", "", "### Comparison", "", head, sep]
     out += [line(n, rows[n]) for n in ("dp", "sdp_h2", "sdp_h4") if n in rows]
+    warm = [n for n in rows if n.startswith(("warm_", "scratch_"))]
+    if warm:
+        out += ["", "### Warm start from the trained DP (SDP h = 2, a tenth of DP's steps)", "", head, sep]
+        out += [line(n, rows[n]) for n in ("dp", "sdp_h2", *warm) if n in rows]
     ablations = [n for n in rows if n.startswith(("scheme_", "primer_"))]
     if ablations:
         out += ["", f"### Ablations (reduced budget: {budget.ablation_steps} steps)", "", head, sep]
@@ -252,7 +276,12 @@ def with_se(row: dict, key: str, digits: int) -> str:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--budget", choices=list(BUDGETS), default="cpu")
-    parser.add_argument("--runs", choices=["comparison", "ablations", "all"], default="comparison")
+    parser.add_argument(
+        "--runs",
+        choices=["comparison", "ablations", "warmstart", "all"],
+        default="comparison",
+        help="warmstart: SDP fine-tuned from the comparison's trained DP (run the comparison first)",
+    )
     parser.add_argument("--output_dir", type=Path, default=None, help="default: outputs/quality_<budget>")
     parser.add_argument(
         "--zarr", type=Path, default=None, help="Push-T zarr (default: $SDP_PUSHT_ZARR, ../shared/...)"
@@ -295,7 +324,16 @@ def resolve_budget(args: argparse.Namespace) -> tuple[str, Budget]:
 def run(args: argparse.Namespace) -> dict:
     budget_name, budget = resolve_budget(args)
     output_dir = args.output_dir or Path(f"outputs/quality_{budget_name}")
-    runs = {"comparison": comparison_runs, "ablations": ablation_runs}
+    runs = {
+        "comparison": comparison_runs,
+        "ablations": ablation_runs,
+        "warmstart": lambda b, d: warmstart_runs(b, d, dp_model(output_dir)),
+    }
+    if args.runs == "warmstart" and not dp_model(output_dir).exists() and not args.status:
+        raise SystemExit(
+            f"The warm-start runs start from the comparison's trained DP, and {dp_model(output_dir)} does "
+            "not exist: run `--runs comparison` with this --output_dir first."
+        )
     selected = [
         r for kind in (runs if args.runs == "all" else [args.runs]) for r in runs[kind](budget, args.device)
     ]
