@@ -153,16 +153,7 @@ class SDPConfig(PreTrainedConfig):
             raise ValueError(f"`crop_shape` must have positive dimensions, got {self.crop_shape}.")
         if not 0.0 <= self.ema_max_decay < 1.0 or self.ema_power <= 0:
             raise ValueError("EMA needs 0 <= ema_max_decay < 1 and ema_power > 0.")
-        geometry = self.geometry  # validates the sizes
-        logging.info(
-            "SDP geometry: horizon=%d (%d past + %d chunks x %d + %d padding), %d denoiser calls per chunk.",
-            geometry.horizon,
-            geometry.n_past,
-            geometry.n_chunks,
-            geometry.chunk_len,
-            geometry.n_pad,
-            geometry.steps_per_call,
-        )
+        logging.info("%s.", self.geometry.describe())  # building the geometry validates the sizes
 
     @property
     def inference_steps(self) -> int:

@@ -80,3 +80,10 @@ class ChunkGeometry:
     def start_levels(self) -> torch.Tensor:
         """(horizon,) steps remaining of every slot at the start of a streaming call."""
         return (self.slot_chunk + 1) * self.steps_per_call
+
+    def describe(self) -> str:
+        """The line logged when a config is built and printed by the main job."""
+        return (
+            f"SDP geometry: horizon={self.horizon} ({self.n_past} past + {self.n_chunks} chunks x "
+            f"{self.chunk_len} + {self.n_pad} padding), {self.steps_per_call} denoiser calls per chunk"
+        )

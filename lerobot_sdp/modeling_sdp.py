@@ -72,8 +72,7 @@ class SDPModel(DiffusionModel):
 
     def cache_step_embeddings(self, plan: list[StepCoefficients]) -> None:
         """Let the step encoder keep the embeddings of this streaming plan (`unet.PlanEmbeddingCache`)."""
-        encoder = getattr(self.unet, "_orig_mod", self.unet).diffusion_step_encoder
-        plan_embedding_cache(encoder).keep([c.timesteps for c in plan])
+        plan_embedding_cache(self.unet.diffusion_step_encoder).keep([c.timesteps for c in plan])
 
     def stream_step(
         self,

@@ -30,6 +30,7 @@ from lerobot.processor.factory import make_default_policy_processor_steps, make_
 from lerobot.utils.constants import OBS_ENV_STATE, OBS_STATE
 
 from .configuration_sdp import SDPConfig
+from .warm_start import PREPROCESSOR_NAME as PREPROCESSOR_FILE
 from .warm_start import merged_stats
 
 
@@ -89,9 +90,6 @@ def make_sdp_pre_post_processors(
         input_steps=[s.rename_observations, *split, s.add_batch_dim, s.to_device, s.normalize],
         output_steps=[s.unnormalize, s.to_cpu],
     )
-
-
-PREPROCESSOR_FILE = "policy_preprocessor.json"
 
 
 def add_split_state_step(policy_dir: str | Path) -> bool:

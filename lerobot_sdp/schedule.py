@@ -85,11 +85,10 @@ class PerSlotSchedule(nn.Module):
         model_output: Tensor,
         sample: Tensor,
         noise: Tensor | None = None,
-        generator: torch.Generator | None = None,
     ) -> Tensor:
         """x_t -> x_{t_prev} for every slot with k > 0; slots with k = 0 are left untouched
         (indexing abar at k = 0 would silently wrap to the noisiest level). DDPM's step noise is
-        ``noise`` when given, else drawn from ``generator``."""
+        ``noise`` when given (the streaming buffer draws it up front), else the global RNG's."""
         if self.prediction_type == "epsilon":
             eps = model_output
             x0 = (sample - c.sqrt_one_minus_abar * eps) / c.sqrt_abar
@@ -104,7 +103,7 @@ class PerSlotSchedule(nn.Module):
         if c.eps_coef is not None:
             prev = prev + c.eps_coef * eps
         if c.noise_std is not None:
-            prev = prev + c.noise_std * (gaussian_like(sample, generator) if noise is None else noise)
+            prev = prev + c.noise_std * (torch.randn_like(sample) if noise is None else noise)
         return prev if c.active is None else torch.where(c.active, prev, sample)
 
     def step(self, model_output: Tensor, k: Tensor, sample: Tensor, noise: Tensor | None = None) -> Tensor:

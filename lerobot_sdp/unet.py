@@ -115,14 +115,13 @@ class PerSlotDPStepEncoder(nn.Sequential):
 
 class PerPositionFiLMBlock(DiffusionConditionalResidualBlock1d):
     """LeRobot's residual block whose FiLM also takes per-position conditioning (B, T, cond_dim): it is
-    average-pooled to the block's temporal length and goes through the block's own ``cond_encoder``.
-    A (B, cond_dim) conditioning takes LeRobot's path unchanged."""
+    average-pooled to the block's temporal length and goes through the block's own ``cond_encoder``."""
 
     def forward(self, x: Tensor, cond: Tensor) -> Tensor:
-        if cond.ndim == 2:
-            return super().forward(x, cond)
         out = self.conv1(x)
-        pooled = F.adaptive_avg_pool1d(cond.transpose(1, 2), out.shape[-1]).transpose(1, 2)
+        pooled = cond  # already at this block's length at the U-Net's top level
+        if out.shape[-1] != cond.shape[1]:
+            pooled = F.adaptive_avg_pool1d(cond.transpose(1, 2), out.shape[-1]).transpose(1, 2)
         film = self.cond_encoder(pooled).transpose(1, 2)  # (B, channels, L)
         if self.use_film_scale_modulation:
             out = film[:, : self.out_channels] * out + film[:, self.out_channels :]
@@ -147,17 +146,15 @@ class FiLMPerSlotUnet1d(DiffusionConditionalUnet1d):
 
 def make_variable_noise(unet: nn.Module, embed_dim: int, horizon: int, mode: str = "flatten") -> None:
     """Give LeRobot's U-Net (same blocks, same FiLM) a step input of one level per slot, with the
-    paper's flattened step encoder (``mode="flatten"``) or per-position FiLM (``"film_per_slot"``).
-    Works on a ``torch.compile``d U-Net too: compilation is lazy, so the swap happens before tracing."""
-    base = getattr(unet, "_orig_mod", unet)
-    if not isinstance(base, DiffusionConditionalUnet1d):
-        raise TypeError(f"Expected LeRobot's DiffusionConditionalUnet1d, got {type(base).__name__}.")
+    paper's flattened step encoder (``mode="flatten"``) or per-position FiLM (``"film_per_slot"``)."""
+    if not isinstance(unet, DiffusionConditionalUnet1d):
+        raise TypeError(f"Expected LeRobot's DiffusionConditionalUnet1d, got {type(unet).__name__}.")
     if mode == "flatten":
-        base.diffusion_step_encoder = PerSlotStepEncoder(embed_dim, horizon)
+        unet.diffusion_step_encoder = PerSlotStepEncoder(embed_dim, horizon)
     elif mode == "film_per_slot":
-        base.__class__ = FiLMPerSlotUnet1d
-        base.diffusion_step_encoder.__class__ = PerSlotDPStepEncoder
-        for module in base.modules():
+        unet.__class__ = FiLMPerSlotUnet1d
+        unet.diffusion_step_encoder.__class__ = PerSlotDPStepEncoder
+        for module in unet.modules():
             if type(module) is DiffusionConditionalResidualBlock1d:
                 module.__class__ = PerPositionFiLMBlock
     else:

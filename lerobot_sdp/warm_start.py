@@ -22,15 +22,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
+from huggingface_hub.constants import CONFIG_NAME, SAFETENSORS_SINGLE_FILE
+from lerobot.utils.constants import POLICY_PREPROCESSOR_DEFAULT_NAME
 from safetensors.torch import load_file
 from torch import Tensor, nn
 
 from .configuration_sdp import SDPConfig
 from .unet import PerSlotStepEncoder, flatten_encoder_from_dp
 
-CONFIG_NAME = "config.json"
-WEIGHTS_NAME = "model.safetensors"
-PREPROCESSOR_NAME = "policy_preprocessor.json"
+WEIGHTS_NAME = SAFETENSORS_SINGLE_FILE
+PREPROCESSOR_NAME = f"{POLICY_PREPROCESSOR_DEFAULT_NAME}.json"
 DP_PREFIX = "diffusion."
 STEP_ENCODER = "unet.diffusion_step_encoder."
 
@@ -190,7 +191,7 @@ def _flag_value(value) -> str:
 
 
 def _base_key(key: str) -> str:
-    """A state-dict key without torch.compile's `_orig_mod.`."""
+    """A DP state-dict key without `_orig_mod.` (DP's `compile_model` compiles its U-Net in place)."""
     return key.replace("_orig_mod.", "")
 
 
@@ -208,7 +209,7 @@ def warm_start(policy: nn.Module, init_from: str) -> WarmStartReport:
         if k.startswith(DP_PREFIX)
     }
     model = policy.model
-    target = {_base_key(k): v for k, v in model.state_dict().items()}
+    target = model.state_dict()
     report = WarmStartReport(source=init_from, checkpoint=path)
     mismatched = [
         f"{k}: checkpoint {tuple(dp_state[k].shape)} vs SDP {tuple(v.shape)}"
@@ -226,8 +227,9 @@ def warm_start(policy: nn.Module, init_from: str) -> WarmStartReport:
             tensor.copy_(dp_state[key])
             report.copied.append(key)
 
-    unet = getattr(model.unet, "_orig_mod", model.unet)
-    if isinstance(unet.diffusion_step_encoder, PerSlotStepEncoder):
+    unet = model.unet
+    flatten = isinstance(unet.diffusion_step_encoder, PerSlotStepEncoder)
+    if flatten:
         dp_encoder = {
             k.removeprefix(STEP_ENCODER): v for k, v in dp_state.items() if k.startswith(STEP_ENCODER)
         }
@@ -243,7 +245,7 @@ def warm_start(policy: nn.Module, init_from: str) -> WarmStartReport:
         if key not in dp_state and key not in report.initialised:
             report.initialised[key] = "no tensor of this name in the checkpoint: kept SDP's initialisation"
     report.unused = sorted(
-        k for k in dp_state if k not in target and not (k.startswith(STEP_ENCODER) and report.initialised)
+        k for k in dp_state if k not in target and not (k.startswith(STEP_ENCODER) and flatten)
     )
     if policy.ema_model is not None:
         policy.ema_model.load_state_dict(model.state_dict())
@@ -273,20 +275,19 @@ def merged_stats(init_from: str | Path, dataset_stats: dict | None, warn: bool =
     """The statistics a warm-started SDP normalises with: the checkpoint's (what its weights were
     trained with) over the dataset's; with `warn`, a warning names the features where they differ."""
     saved = normalizer_stats(init_from)
-    if not warn:
-        return dataset_stats if saved is None else {**(dataset_stats or {}), **saved}
     if saved is None:
-        logging.warning(
-            "Warm start: %s holds no normaliser statistics (no %s); SDP normalises with the dataset's. "
-            "They equal DP's only if DP was trained on this dataset.",
-            init_from,
-            PREPROCESSOR_NAME,
-        )
+        if warn:
+            logging.warning(
+                "Warm start: %s holds no normaliser statistics (no %s); SDP normalises with the dataset's. "
+                "They equal DP's only if DP was trained on this dataset.",
+                init_from,
+                PREPROCESSOR_NAME,
+            )
         return dataset_stats
     differ = sorted(
         key for key in saved.keys() & (dataset_stats or {}).keys() if _differ(saved[key], dataset_stats[key])
     )
-    if differ:
+    if warn and differ:
         logging.warning(
             "Warm start: the dataset's statistics of %s differ from the checkpoint's; SDP normalises with "
             "the checkpoint's, which its copied weights were trained with.",

@@ -18,12 +18,11 @@ from pathlib import Path
 
 from ..lerobot_cli import evaluate, last_checkpoint, pusht_eval_args, train, trained_steps
 from ..pusht.data import keypoints_dataset_args
+from ..pusht.job import EVAL_SEED, OBS_TYPE
 from . import cost_sweep
 from .curves import checkpoint_steps, episode_stats, plot, step_logs, wall_time_at
 from .stream_cost import stream_cost
 
-OBS_TYPE = "environment_state_agent_pos"
-EVAL_SEED = 100_000
 DP_HORIZON = 16  # LeRobot's reference Push-T Diffusion Policy (lerobot/diffusion_pusht)
 
 

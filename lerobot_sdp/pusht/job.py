@@ -32,7 +32,7 @@ from .data import NoPushTDataError, converted, keypoints_dataset_args
 
 REPO = Path(__file__).resolve().parents[2]
 OBS_TYPE = "environment_state_agent_pos"
-EVAL_SEED = 100_000  # fixed episode seeds, shared with the quality benchmark
+EVAL_SEED = 100_000  # fixed episode seeds, also the quality benchmark's
 STAGES = ("data", "train", "eval", "measure")
 
 
@@ -143,11 +143,7 @@ def sdp_geometry(config: dict, device: str) -> str | None:
     if policy.get("type") != "sdp":
         return None
     g = draccus.decode(PreTrainedConfig, {**policy, "device": device}).geometry
-    return (
-        f"SDP geometry: horizon={g.horizon} ({g.n_past} past + {g.n_chunks} chunks x {g.chunk_len} + "
-        f"{g.n_pad} padding), {g.steps_per_call} denoiser calls per chunk "
-        f"(N = {g.num_inference_steps}, h = {g.n_chunks})."
-    )
+    return f"{g.describe()} (N = {g.num_inference_steps}, h = {g.n_chunks})."
 
 
 def rollout_videos(eval_dir: Path) -> list[Path]:
