@@ -307,8 +307,18 @@ class SDPPolicy(PreTrainedPolicy):
         return self._stack_cameras(history)
 
     @torch.no_grad()
+    def supports_rtc(self) -> bool:
+        """SDP runs under LeRobot's RTC engine (`lerobot-rollout --inference.type=rtc`), one streaming
+        call per chunk: see `predict_action_chunk` and docs/deployment.md."""
+        return True
+
     def predict_action_chunk(
-        self, batch: dict[str, Tensor], generator: torch.Generator | None = None, **kwargs
+        self,
+        batch: dict[str, Tensor],
+        generator: torch.Generator | None = None,
+        inference_delay: int | None = None,
+        prev_chunk_left_over: Tensor | None = None,
+        **kwargs,
     ) -> Tensor:
         """Algorithm 1, one iteration: s = N/h denoiser calls on the buffer, return the clean chunk
         (B, n_action_steps, A) and roll the buffer. The noisy tail stays internal.
@@ -316,9 +326,15 @@ class SDPPolicy(PreTrainedPolicy):
         Online (after select_action filled the queues) the stacked history is used; offline, `batch`
         is a dataloader batch of (B, n_obs_steps, ...) observations (`_offline_history`).
 
+        From LeRobot's RTC engine (`inference_delay` / `prev_chunk_left_over` given), `batch` is one
+        frame, and the result is the previous chunk's unexecuted actions followed by the new chunk:
+        the buffer's next chunk starts where the previous one ends (`_rtc_chunk`).
+
         Wrapped in `torch.compile` (`lerobot-rollout --use_torch_compile`), the buffer bookkeeping
         stays eager and the streaming step runs compiled, as with `compile_model`."""
         compiled = self.config.compile_model or torch.compiler.is_compiling()
+        if inference_delay is not None or prev_chunk_left_over is not None:
+            return self._rtc_chunk(batch, generator, compiled, prev_chunk_left_over, **kwargs)
         return self._predict_action_chunk(batch, generator, compiled, **kwargs)
 
     @torch.compiler.disable
@@ -330,6 +346,54 @@ class SDPPolicy(PreTrainedPolicy):
             history = {k: torch.stack(list(q), dim=1) for k, q in self._queues.items() if k != ACTION}
         else:
             history = self._offline_history(batch)
+        return self._stream(history, generator, compiled)
+
+    @torch.compiler.disable
+    def _rtc_chunk(
+        self,
+        batch: dict[str, Tensor],
+        generator: torch.Generator | None,
+        compiled: bool,
+        left_over: Tensor | None,
+        **kwargs,
+    ) -> Tensor:
+        """One RTC engine call: the engine passes one frame (it never sees every control tick, so the
+        history is that frame repeated n_obs_steps times) and the unexecuted rest of what the last
+        call returned, zero-padded to `--inference.rtc.execution_horizon`. The engine drops the first
+        `inference_delay` actions of the result (executed while this call ran)."""
+        reject_unknown_kwargs("predict_action_chunk", kwargs)
+        frame = {k: v for k, v in batch.items() if k in self.config.input_features}
+        self._check_observation(frame, time_axis=False)
+        to = self.config.n_obs_steps
+        repeated = {k: v.unsqueeze(1).expand(-1, to, *v.shape[1:]) for k, v in frame.items()}
+        history = self._offline_history(repeated)
+        prefix = self._rtc_prefix(left_over) if left_over is not None else None
+        chunk = self._stream(history, generator, compiled)
+        if prefix is None:
+            return chunk
+        return torch.cat([prefix.to(chunk).unsqueeze(0).expand(chunk.shape[0], -1, -1), chunk], dim=1)
+
+    def _rtc_prefix(self, left_over: Tensor) -> Tensor:
+        """The previous chunk's unexecuted actions (T, A), without the engine's zero padding. SDP streams
+        one chunk per call, so the engine must call once per chunk: when fewer than n_action_steps
+        actions are left."""
+        tb = self.config.n_action_steps
+        rows = left_over.reshape(-1, left_over.shape[-1])
+        used = rows.abs().sum(-1) > 0
+        n = int(used.nonzero().max()) + 1 if bool(used.any()) else 0
+        if rows.shape[0] < tb or n >= tb:
+            raise ValueError(
+                f"SDP under the RTC engine streams one chunk of {tb} actions per call, so it must be called "
+                f"when fewer than {tb} actions are left (got {n} left of {rows.shape[0]} passed). Run "
+                f"`lerobot-rollout --inference.type=rtc --inference.queue_threshold=K` with K < {tb} "
+                f"(about the inference time in control ticks) and --inference.rtc.execution_horizon >= {tb}."
+            )
+        return rows[:n]
+
+    def _stream(
+        self, history: dict[str, Tensor], generator: torch.Generator | None, compiled: bool
+    ) -> Tensor:
+        """One streaming call on a (B, n_obs_steps, ...) history: prime a new stream, run the step."""
         batch_size = history[OBS_STATE].shape[0]
         if self._buffer.batch_size not in (None, batch_size):
             self._buffer.clear()

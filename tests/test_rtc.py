@@ -1,0 +1,67 @@
+"""SDP under LeRobot's RTC engine (`lerobot-rollout --inference.type=rtc`): the call shape LeRobot
+checks, the leftover-then-next-chunk result driven through LeRobot's own ActionQueue, and the clear
+error when the engine calls more often than once per chunk."""
+
+import pytest
+import torch
+from lerobot.policies.rtc import ActionQueue
+from lerobot.policies.rtc.configuration_rtc import RTCConfig
+from lerobot.rollout.inference.rtc import _normalize_prev_actions_length, supports_rtc_inference
+from sdp_test_utils import observation, tiny_config
+
+from lerobot_sdp import SDPPolicy
+
+
+def frame(cfg, seed):
+    return {**observation(cfg, 1, seed=seed), "task": ["push the T"]}  # as the engine passes it
+
+
+def test_lerobot_accepts_sdp_for_rtc():
+    assert supports_rtc_inference(SDPPolicy(tiny_config()))
+
+
+def test_rtc_calls_return_the_leftover_then_the_buffers_next_chunk():
+    cfg = tiny_config()
+    tb, horizon = cfg.n_action_steps, 10
+    policy = SDPPolicy(cfg).eval()
+    reference = SDPPolicy(cfg).eval()
+    reference.load_state_dict(policy.state_dict())
+    calls = []
+    policy.ema_model.unet.register_forward_hook(lambda *_: calls.append(1))
+    queue = ActionQueue(RTCConfig(execution_horizon=horizon))
+    g, g_ref = torch.Generator().manual_seed(0), torch.Generator().manual_seed(0)
+
+    first = policy.predict_action_chunk(
+        frame(cfg, 1), generator=g, inference_delay=0, prev_chunk_left_over=None
+    )
+    assert first.shape == (1, tb, 2) and len(calls) == policy.geometry.steps_per_call
+    queue.merge(first[0], first[0], real_delay=1)  # the engine drops what ran during the call
+    for _ in range(tb - 3):
+        queue.get()
+    left = queue.get_left_over()
+    assert left.shape[0] == 2
+    padded = _normalize_prev_actions_length(left, target_steps=horizon)  # zero rows, as the engine does
+    second = policy.predict_action_chunk(
+        frame(cfg, 2), generator=g, inference_delay=1, prev_chunk_left_over=padded
+    )
+    assert second.shape == (1, 2 + tb, 2) and len(calls) == 2 * policy.geometry.steps_per_call
+    assert torch.equal(second[0, :2], left)  # the robot finishes the previous chunk first
+
+    # the new part is the stream's next chunk, each call's frame repeated as its history
+    def history(seed):
+        return {
+            k: v.unsqueeze(1).expand(-1, cfg.n_obs_steps, *v.shape[1:])
+            for k, v in observation(cfg, 1, seed=seed).items()
+        }
+
+    reference.predict_action_chunk(history(1), generator=g_ref)
+    torch.testing.assert_close(second[:, 2:], reference.predict_action_chunk(history(2), generator=g_ref))
+
+
+def test_rtc_called_more_often_than_once_per_chunk_is_a_clear_error():
+    cfg = tiny_config()
+    policy = SDPPolicy(cfg).eval()
+    policy.predict_action_chunk(frame(cfg, 1), inference_delay=0, prev_chunk_left_over=None)
+    full = torch.rand(cfg.n_action_steps, 2) + 0.1  # a whole chunk still to execute
+    with pytest.raises(ValueError, match=r"--inference\.queue_threshold=K` with K < 4"):
+        policy.predict_action_chunk(frame(cfg, 2), inference_delay=1, prev_chunk_left_over=full)
