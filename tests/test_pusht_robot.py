@@ -69,6 +69,26 @@ def test_robot_features_steps_and_episode_stats(tmp_path):
     assert set(stats["episodes"][0]) >= {"max_reward", "success", "steps"}
 
 
+def test_robot_records_missed_ticks_and_action_jumps(tmp_path, monkeypatch):
+    """A gap of 3.4 ticks between actions is 2 missed ticks; the jumps are the target's moves in px."""
+    from lerobot_sdp.robots import pusht_sim
+
+    now = [0.0]
+    monkeypatch.setattr(pusht_sim.time, "perf_counter", lambda: now[0])
+    robot = make_robot(tmp_path)
+    robot.connect()
+    try:  # 10 Hz: one late action, 0.34 s after the previous one
+        for t, x in zip((0.0, 0.1, 0.2, 0.54, 0.64), (100.0, 103.0, 107.0, 107.0, 227.0), strict=True):
+            now[0] = t
+            robot.send_action({"agent_x.pos": x, "agent_y.pos": 200.0})
+        stats = robot.stats()
+    finally:
+        robot.disconnect()
+    assert stats["missed_ticks"] == 2
+    assert stats["action_jump_px"]["max"] == 120.0 and stats["action_jump_px"]["n"] == 4
+    assert stats["action_jump_px"]["p50"] == 3.5  # jumps 3, 4, 0, 120
+
+
 def test_robot_warns_when_driven_faster_than_real_time(tmp_path, caplog):
     robot = make_robot(tmp_path)
     robot.connect()

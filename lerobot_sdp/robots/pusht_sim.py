@@ -10,6 +10,11 @@ trained on the converted Push-T dataset. The action is the agent's target positi
 
 `send_action` steps the env once (0.1 s of simulated time) and returns at once: the rollout loop
 paces itself at `--fps`, so the robot must not sleep too. `get_observation` returns the current state.
+
+For comparing inference engines the robot also records, per run, how regularly actions arrived
+(`missed_ticks`: control ticks without an action, from the gaps between actions longer than 1.5
+ticks) and how far the commanded target jumped between consecutive actions (`action_jump_px`: p50,
+p95, max; a chunk boundary that does not join up shows as a jump).
 """
 
 import json
@@ -48,6 +53,10 @@ class PushTSim(Robot):
         self._success = False
         self._t_first: float | None = None
         self._pacing_checked = False
+        self._t_last: float | None = None
+        self._last_target: np.ndarray | None = None
+        self.missed_ticks = 0
+        self.action_jumps: list[float] = []
 
     @property
     def observation_features(self) -> dict:
@@ -107,6 +116,7 @@ class PushTSim(Robot):
         if missing:
             raise KeyError(f"pusht_sim action lacks {missing}; it takes {list(AGENT_KEYS)}.")
         target = np.array([float(action[k]) for k in AGENT_KEYS])
+        self._record_timing(target)
         obs, reward, terminated, _, info = self._env.step(target)
         self._set_obs(obs)
         self.actions_sent += 1
@@ -119,6 +129,16 @@ class PushTSim(Robot):
             self._end_episode()
             self._reset()
         return dict(zip(AGENT_KEYS, target.tolist(), strict=True))
+
+    def _record_timing(self, target: np.ndarray) -> None:
+        """Missed control ticks (an action gap of more than 1.5 ticks) and the jump from the last
+        target. Episode resets do not break the record: the pusher stays where it was."""
+        now, tick = time.perf_counter(), 1.0 / self.config.fps
+        if self._t_last is not None and now - self._t_last > 1.5 * tick:
+            self.missed_ticks += round((now - self._t_last) / tick) - 1
+        if self._last_target is not None:
+            self.action_jumps.append(float(np.linalg.norm(target - self._last_target)))
+        self._t_last, self._last_target = now, target
 
     def _check_pacing(self) -> None:
         now = time.perf_counter()
@@ -162,6 +182,8 @@ class PushTSim(Robot):
         return {
             "actions_sent": self.actions_sent,
             "ignored_commands": self.ignored_commands,
+            "missed_ticks": self.missed_ticks,
+            "action_jump_px": jump_stats(self.action_jumps),
             "last_reward": self.last_reward,
             "episodes": list(self.episodes),
             "current_episode": self._episode_summary(),
@@ -187,3 +209,10 @@ class PushTSim(Robot):
         self._write_stats()
         self._env.close()
         self._env = None
+
+
+def jump_stats(jumps: list[float]) -> dict[str, float] | None:
+    if not jumps:
+        return None
+    p50, p95 = np.percentile(jumps, [50, 95])
+    return {"p50": float(p50), "p95": float(p95), "max": float(max(jumps)), "n": len(jumps)}
