@@ -238,6 +238,13 @@ class SDPPolicy(PreTrainedPolicy):
             self._queues[OBS_ENV_STATE] = deque(maxlen=cfg.n_obs_steps)
         self._buffer.clear()
 
+    def drop_queued_actions(self) -> None:
+        """Drop the queued actions and the streaming buffer, keep the observation history: LeRobot's
+        main branch calls this when the conditioning changes mid-episode (e.g. a new task), and the
+        buffer's partly denoised future was computed under the old one. The next call re-primes."""
+        self._queues[ACTION].clear()
+        self._buffer.clear()
+
     def _sampling_model(self) -> SDPModel:
         return self.ema_model if self.ema_model is not None and not self.training else self.model
 

@@ -293,3 +293,20 @@ def test_select_action_takes_lerobot_evals_batch():
         obs = {**observation(cfg), "action": None, "task": ["push the T", "push the T"]}
         action = policy.select_action(obs)
         assert isinstance(action, torch.Tensor) and action.shape == (2, 2)
+
+
+def test_drop_queued_actions_drops_the_buffer_and_keeps_the_history():
+    """LeRobot's main branch drops queued actions on a conditioning change; SDP's buffer is queued
+    future too, so it goes with them, and the next call re-primes from the kept history."""
+    cfg = tiny_config()
+    policy = SDPPolicy(cfg).eval()
+    for i in range(2):
+        policy.select_action(observation(cfg, seed=i))
+    history = list(policy._queues["observation.state"])
+    policy.drop_queued_actions()
+    assert not policy._queues["action"] and policy._buffer.sample is None
+    assert list(policy._queues["observation.state"]) == history
+    calls = []
+    policy.ema_model.unet.register_forward_hook(lambda *_: calls.append(1))
+    assert policy.select_action(observation(cfg, seed=5)).shape == (2, 2)
+    assert len(calls) == policy.geometry.steps_per_call and policy._buffer.sample is not None

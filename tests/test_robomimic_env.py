@@ -196,3 +196,26 @@ def test_image_observations_and_video_frames():
         assert frame.shape == (64, 64, 3) and frame.std() > 0
     finally:
         vec.close()
+
+
+def test_another_plugins_robomimic_env_does_not_hide_sdp():
+    """A second plugin that registered `--env.type=robomimic` first: SDP still imports, says which
+    plugin holds the name, and `--policy.type=sdp` and `pusht_sim` stay registered."""
+    code = (
+        "import logging, dataclasses; logging.basicConfig(level=logging.WARNING)\n"
+        "from lerobot.envs.configs import EnvConfig\n"
+        "@EnvConfig.register_subclass('robomimic')\n"
+        "@dataclasses.dataclass\n"
+        "class OtherRobomimic(EnvConfig):\n"
+        "    pass\n"
+        "import lerobot_sdp\n"
+        "from lerobot.configs.policies import PreTrainedConfig\n"
+        "from lerobot.robots import RobotConfig\n"
+        "print(PreTrainedConfig.get_choice_class('sdp').__name__,"
+        " RobotConfig.get_choice_class('pusht_sim').__name__,"
+        " EnvConfig.get_choice_class('robomimic').__name__)\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.split() == ["SDPConfig", "PushTSimConfig", "OtherRobomimic"]
+    assert "--env.type=robomimic is already registered by __main__.OtherRobomimic" in proc.stderr

@@ -5,6 +5,7 @@ plugin shim on every `lerobot-train` / `lerobot-eval` start. robosuite is import
 environment is actually built (`create_envs`).
 """
 
+import logging
 from dataclasses import dataclass, field
 
 from lerobot.configs import FeatureType, PolicyFeature
@@ -14,7 +15,6 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 from .tasks import CONTROL_FREQ, check_obs_type, get_task
 
 
-@EnvConfig.register_subclass("robomimic")
 @dataclass
 class RobomimicEnvConfig(EnvConfig):
     """Lift, PickPlaceCan, NutAssemblySquare, TwoArmTransport or ToolHang, built as robomimic does.
@@ -95,3 +95,28 @@ class RobomimicEnvConfig(EnvConfig):
         from .env import make_vector_env
 
         return {self.task: {0: make_vector_env(n_envs, use_async_envs, **self.gym_kwargs)}}
+
+
+def register(name: str = "robomimic") -> bool:
+    """Register `--env.type=robomimic`. If another plugin took the name first, SDP still loads (its
+    policy and pusht_sim do not depend on it) and says so, instead of failing the whole plugin import
+    (which LeRobot would report as a missing `sdp` policy)."""
+    try:
+        EnvConfig.register_subclass(name)(RobomimicEnvConfig)
+    except ValueError:
+        other = EnvConfig.get_choice_class(name)
+        if other is RobomimicEnvConfig:
+            return True
+        logging.warning(
+            "lerobot_policy_sdp: --env.type=%s is already registered by %s.%s (another plugin), so SDP's "
+            "robomimic environment is not available; --policy.type=sdp and --robot.type=pusht_sim are. "
+            "Uninstall one of the two plugins to use the other's robomimic environment.",
+            name,
+            other.__module__,
+            other.__qualname__,
+        )
+        return False
+    return True
+
+
+register()
