@@ -160,12 +160,10 @@ def save_tiny_policy(path: Path) -> Path:
     return path
 
 
-@pytest.mark.slow
-def test_lerobot_rollout_drives_pusht_sim_with_sdp(tmp_path):
-    """The real `lerobot-rollout` CLI (sync engine) runs SDP on the simulated robot at 10 Hz."""
+def run_rollout(tmp_path, duration: int, *extra: str) -> tuple[str, dict]:
+    """The real `lerobot-rollout` CLI on pusht_sim at 10 Hz with a tiny SDP: its log and robot stats."""
     policy_dir = save_tiny_policy(tmp_path / "policy")
     stats_path = tmp_path / "rollout_stats.json"
-    duration = 3
     cmd = [
         str(BIN / "lerobot-rollout"),
         "--robot.type=pusht_sim",
@@ -176,13 +174,21 @@ def test_lerobot_rollout_drives_pusht_sim_with_sdp(tmp_path):
         f"--duration={duration}",
         "--device=cpu",
         "--return_to_initial_position=false",
+        *extra,
     ]
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_LEROBOT_HOME": str(tmp_path / "lerobot_home")}
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
     log = proc.stdout + proc.stderr
     assert proc.returncode == 0, log[-5000:]
+    return log, json.loads(stats_path.read_text())
+
+
+@pytest.mark.slow
+def test_lerobot_rollout_drives_pusht_sim_with_sdp(tmp_path):
+    """The real `lerobot-rollout` CLI (sync engine) runs SDP on the simulated robot at 10 Hz."""
+    duration = 3
+    log, stats = run_rollout(tmp_path, duration)
     assert "SyncInferenceEngine" in log and "Rollout finished" in log
-    stats = json.loads(stats_path.read_text())
     # paced at 10 Hz for `duration` s: about 30 actions (fewer on a slow or loaded machine)
     assert 10 <= stats["actions_sent"] <= 10 * duration + 2, stats
     assert stats["ignored_commands"] == 0
@@ -195,27 +201,8 @@ def test_lerobot_rollout_drives_pusht_sim_with_sdp(tmp_path):
 def test_lerobot_rollout_rtc_engine_drives_pusht_sim_with_sdp(tmp_path):
     """The real `lerobot-rollout` CLI with the RTC engine (a background inference thread) runs SDP,
     called once per chunk (`--inference.queue_threshold` below the chunk length)."""
-    policy_dir = save_tiny_policy(tmp_path / "policy")
-    stats_path = tmp_path / "rollout_stats.json"
     duration = 5
-    cmd = [
-        str(BIN / "lerobot-rollout"),
-        "--robot.type=pusht_sim",
-        f"--robot.calibration_dir={tmp_path / 'calibration'}",
-        f"--robot.stats_path={stats_path}",
-        f"--policy.path={policy_dir}",
-        "--fps=10",
-        f"--duration={duration}",
-        "--device=cpu",
-        "--return_to_initial_position=false",
-        "--inference.type=rtc",
-        "--inference.queue_threshold=2",
-    ]
-    env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_LEROBOT_HOME": str(tmp_path / "lerobot_home")}
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
-    log = proc.stdout + proc.stderr
-    assert proc.returncode == 0, log[-5000:]
+    log, stats = run_rollout(tmp_path, duration, "--inference.type=rtc", "--inference.queue_threshold=2")
     assert "RTCInferenceEngine" in log and "RTC inference error" not in log, log[-5000:]
-    stats = json.loads(stats_path.read_text())
     assert 2 * duration <= stats["actions_sent"] <= 10 * duration + 2, stats
     assert stats["ignored_commands"] == 0
