@@ -41,8 +41,9 @@ def reverse_plan(
     """Coefficients of ``n_steps`` reverse steps starting from per-slot steps-remaining ``k_start``
     (T,); the timesteps are expanded to (batch_size, T) once here, so that every call hands the
     denoiser the same tensors (the step encoder caches their embeddings, `unet.PlanEmbeddingCache`)."""
-    k_start = k_start.expand(batch_size, -1)
-    return [schedule.coefficients((k_start - j).clamp(min=0)) for j in range(n_steps)]
+    k_min = int(k_start.min())  # one read per plan: which steps leave some slot clean
+    plan = [schedule.coefficients((k_start - j).clamp(min=0), all_active=k_min > j) for j in range(n_steps)]
+    return [c._replace(timesteps=c.timesteps.expand(batch_size, -1)) for c in plan]
 
 
 def step_noise(
@@ -128,7 +129,8 @@ class StreamingBuffer:
 
     def advance(self, denoiser: Denoiser, generator: torch.Generator | None = None) -> Tensor:
         """Run s calls of a denoiser of (sample, timesteps (B, T)), pop the now clean chunk (B, Tb, A)
-        and roll the buffer forward. Every random draw (DDPM step noise, re-noised past slots, the new
+        and roll the buffer forward (the plain form of `run`, which the policy calls with its
+        compiled or cached step). Every random draw (DDPM step noise, re-noised past slots, the new
         tail) uses ``generator``."""
 
         def step(sample: Tensor, plan: list[StepCoefficients], noise: StreamNoise) -> tuple[Tensor, Tensor]:

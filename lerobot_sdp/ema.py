@@ -12,7 +12,7 @@ from torch import Tensor, nn
 
 def ema_decay(step: Tensor, power: float, max_decay: float) -> Tensor:
     """The decay at optimiser step ``step`` (a 0-d tensor on the model's device: no host read)."""
-    return (1.0 - (1.0 + step.double()) ** -power).clamp(0.0, max_decay)
+    return (1.0 - (1.0 + step.float()) ** -power).clamp(0.0, max_decay)
 
 
 @torch.no_grad()
@@ -20,7 +20,9 @@ def ema_update(averaged: nn.Module, model: nn.Module, decay: Tensor) -> None:
     """averaged <- decay * averaged + (1 - decay) * model for parameters; buffers are copied."""
     avg = [p for p in averaged.parameters()]
     new = [p.detach() for p in model.parameters()]
-    weight = (1.0 - decay).to(avg[0].dtype)
-    torch._foreach_lerp_(avg, new, [weight] * len(avg))
+    # avg += (1 - decay) (new - avg), with fused multi-tensor kernels and the decay left on the device
+    step = torch._foreach_sub(new, avg)
+    torch._foreach_mul_(step, (1.0 - decay).to(avg[0].dtype))
+    torch._foreach_add_(avg, step)
     for b_avg, b_new in zip(averaged.buffers(), model.buffers(), strict=True):
         b_avg.copy_(b_new)

@@ -76,6 +76,13 @@ class ChunkGeometry:
             ]
         )
 
+    def slot_chunk_on(self, device: torch.device) -> torch.Tensor:
+        """`slot_chunk` on `device`, copied there once: training draws levels on the device every step."""
+        copies = self.__dict__.setdefault("_slot_chunk_copies", {})
+        if device not in copies:
+            copies[device] = self.slot_chunk.to(device)
+        return copies[device]
+
     @cached_property
     def start_levels(self) -> torch.Tensor:
         """(horizon,) steps remaining of every slot at the start of a streaming call."""

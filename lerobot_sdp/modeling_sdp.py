@@ -72,7 +72,8 @@ class SDPModel(DiffusionModel):
 
     def cache_step_embeddings(self, plan: list[StepCoefficients]) -> None:
         """Let the step encoder keep the embeddings of this streaming plan (`unet.PlanEmbeddingCache`)."""
-        plan_embedding_cache(self.unet.diffusion_step_encoder).keep([c.timesteps for c in plan])
+        encoder = self.unet.diffusion_step_encoder
+        plan_embedding_cache(encoder).keep(encoder, [c.timesteps for c in plan])
 
     def stream_step(
         self,
@@ -288,15 +289,17 @@ class SDPPolicy(PreTrainedPolicy):
         if queued and queued[-1].shape[0] != batch[OBS_STATE].shape[0]:
             logging.warning("SDP: the batch size changed without reset(); starting a new stream.")
             self.reset()
+        if self._queues[ACTION]:  # between chunks the observation only joins the history
+            self._queues = populate_queues(self._queues, self._stack_cameras(batch))
+            return self._queues[ACTION].popleft()
         before = {key: queue.copy() for key, queue in self._queues.items()}
         self._queues = populate_queues(self._queues, self._stack_cameras(batch))
-        if not self._queues[ACTION]:
-            try:
-                chunk = self.predict_action_chunk(batch, generator=generator)
-            except ValueError:  # a refused observation leaves the policy as it was
-                self._queues = before
-                raise
-            self._queues[ACTION].extend(chunk.transpose(0, 1))
+        try:
+            chunk = self.predict_action_chunk(batch, generator=generator)
+        except ValueError:  # a refused observation leaves the policy as it was
+            self._queues = before
+            raise
+        self._queues[ACTION].extend(chunk.transpose(0, 1))
         return self._queues[ACTION].popleft()
 
     def _offline_history(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
@@ -313,12 +316,12 @@ class SDPPolicy(PreTrainedPolicy):
         self._check_observation(history, time_axis=True)
         return self._stack_cameras(history)
 
-    @torch.no_grad()
     def supports_rtc(self) -> bool:
         """SDP runs under LeRobot's RTC engine (`lerobot-rollout --inference.type=rtc`), one streaming
         call per chunk: see `predict_action_chunk` and docs/deployment.md."""
         return True
 
+    @torch.no_grad()
     def predict_action_chunk(
         self,
         batch: dict[str, Tensor],
@@ -370,7 +373,6 @@ class SDPPolicy(PreTrainedPolicy):
         `inference_delay` actions of the result (executed while this call ran)."""
         reject_unknown_kwargs("predict_action_chunk", kwargs)
         frame = {k: v for k, v in batch.items() if k in self.config.input_features}
-        self._check_observation(frame, time_axis=False)
         to = self.config.n_obs_steps
         repeated = {k: v.unsqueeze(1).expand(-1, to, *v.shape[1:]) for k, v in frame.items()}
         history = self._offline_history(repeated)
@@ -386,8 +388,8 @@ class SDPPolicy(PreTrainedPolicy):
         actions are left."""
         tb = self.config.n_action_steps
         rows = left_over.reshape(-1, left_over.shape[-1])
-        used = rows.abs().sum(-1) > 0
-        n = int(used.nonzero().max()) + 1 if bool(used.any()) else 0
+        used = rows.abs().sum(-1) > 0  # the engine pads with zero rows; the last used row ends it
+        n = int((used * torch.arange(1, len(used) + 1, device=used.device)).max())
         if rows.shape[0] < tb or n >= tb:
             raise ValueError(
                 f"SDP under the RTC engine streams one chunk of {tb} actions per call, so it must be called "
@@ -405,10 +407,9 @@ class SDPPolicy(PreTrainedPolicy):
         if self._buffer.batch_size not in (None, batch_size):
             self._buffer.clear()
         model = self._sampling_model()
-        if self._buffer.sample is None:  # a new stream: never prime from a bad observation
-            self._refuse_non_finite(history, finite_flags(history))
-            global_cond = model._prepare_global_conditioning(history)
-            self._buffer.prime(self._primer(model, history, global_cond, generator), generator)
+        fresh = self._buffer.sample is None
+        if fresh:
+            self._buffer.prime(self._primer(model, history, None, generator), generator)
         run = model.streaming_step_fn(history[OBS_STATE].device, compiled)
 
         def step(sample: Tensor, plan: list[StepCoefficients], noise: StreamNoise) -> tuple[Tensor, Tensor]:
@@ -417,7 +418,12 @@ class SDPPolicy(PreTrainedPolicy):
             self._refuse_non_finite(history, finite)  # the one host read, after the chunk is computed
             return chunk, next_sample
 
-        return self._buffer.run(step, generator)
+        try:
+            return self._buffer.run(step, generator)
+        except ValueError:
+            if fresh:  # never keep a stream primed from a refused observation
+                self._buffer.clear()
+            raise
 
     @staticmethod
     def _refuse_non_finite(history: dict[str, Tensor], finite: Tensor) -> None:
@@ -430,14 +436,18 @@ class SDPPolicy(PreTrainedPolicy):
         self,
         model: SDPModel,
         history: dict[str, Tensor],
-        global_cond: Tensor,
+        global_cond: Tensor | None,
         generator: torch.Generator | None,
     ) -> Tensor:
-        """Clean (normalised) sequence the buffer starts from (paper Sec. "Initializing the buffer")."""
-        batch_size = history[OBS_STATE].shape[0]
+        """Clean (normalised) sequence the buffer starts from (paper Sec. "Initializing the buffer").
+        Only "denoise" needs the observation conditioning (computed here when not given)."""
+        state = history[OBS_STATE]
+        batch_size = state.shape[0]
         shape = (batch_size, self.geometry.horizon, self.config.action_feature.shape[0])
         primer = self.config.action_primer
         if primer == "denoise":
+            if global_cond is None:
+                global_cond = model._prepare_global_conditioning(history)
             return model.conditional_sample(batch_size, global_cond, generator)
         if primer == "constant":
             if torch.isnan(self.state_to_action).any():
@@ -449,7 +459,7 @@ class SDPPolicy(PreTrainedPolicy):
             scale, offset = self.state_to_action
             current = history[OBS_STATE][:, -1] * scale + offset  # the newest observation
             return current.unsqueeze(1).expand(shape).contiguous()
-        return torch.zeros(shape, device=global_cond.device, dtype=global_cond.dtype)
+        return torch.zeros(shape, device=state.device, dtype=state.dtype)
 
     def forward(self, batch: dict[str, Tensor]) -> tuple[Tensor, None]:
         """Training loss on a dataset batch of (B, n_obs_steps, ...) observations and (B, horizon, A)

@@ -66,7 +66,7 @@ def chunkwise_levels(batch_size: int, geometry: ChunkGeometry, schedule: PerSlot
     s = geometry.steps_per_call
     device = device_of(schedule)
     offset = torch.randint(1, s + 1, (batch_size, 1), device=device)  # shared by all chunks of a sample
-    k = geometry.slot_chunk.to(device).unsqueeze(0) * s + offset
+    k = geometry.slot_chunk_on(device).unsqueeze(0) * s + offset
     return schedule.train_timesteps(k)
 
 

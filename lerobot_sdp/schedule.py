@@ -59,19 +59,21 @@ class PerSlotSchedule(nn.Module):
         abar = self.alpha_bar(t)
         return abar.sqrt() * x0 + (1 - abar).sqrt() * eps
 
-    def coefficients(self, k: Tensor) -> "StepCoefficients":
+    def coefficients(self, k: Tensor, all_active: bool | None = None) -> "StepCoefficients":
         """Gather every per-slot coefficient of one reverse step from steps-remaining ``k`` (..., T).
 
         A streaming call visits the same s level patterns every time, so callers compute these once
         and reuse them: a step is then a handful of tensor ops (the buffer's bookkeeping budget).
         ``active`` is None when every slot steps (always, while streaming), so that the step skips its
-        ``torch.where``; deciding that reads ``k`` once here, never per step."""
+        ``torch.where``; a caller that knows (``all_active``) spares the read of ``k``."""
         t, t_prev = self.train_timesteps(k), self.train_timesteps((k - 1).clamp(min=0))
         abar, abar_prev = self.alpha_bar(t), self.alpha_bar(t_prev)
         active = (k > 0).unsqueeze(-1)
+        if all_active is None:
+            all_active = bool(active.all())
         common = dict(
             timesteps=t,
-            active=None if bool(active.all()) else active,
+            active=None if all_active else active,
             sqrt_abar=abar.sqrt(),
             sqrt_one_minus_abar=(1 - abar).sqrt(),
         )

@@ -43,23 +43,27 @@ class PlanEmbeddingCache:
     inside a compiled graph (which computes the embedding itself)."""
 
     def __init__(self):
-        self._entries: dict[int, tuple[Tensor, tuple, Tensor | None]] = {}
+        self._entries: dict[int, tuple[Tensor, Tensor | None]] = {}
+        self._key: tuple | None = None
 
-    def keep(self, plan_timesteps: list[Tensor]) -> None:
-        """Cache these tensors' embeddings from now on (replacing another plan's)."""
-        if any(self._entries.get(id(t), (None,))[0] is not t for t in plan_timesteps):
-            self._entries = {id(t): (t, (), None) for t in plan_timesteps}
+    def keep(self, encoder: nn.Module, plan_timesteps: list[Tensor]) -> None:
+        """Cache these tensors' embeddings from now on (replacing another plan's); called once per
+        streaming call, so that the weights and autocast are checked there, not per denoiser call."""
+        key = (weights_key(encoder), autocast_key(plan_timesteps[0].device.type))
+        stale = any(self._entries.get(id(t), (None,))[0] is not t for t in plan_timesteps)
+        if stale or key != self._key:
+            self._entries = {id(t): (t, None) for t in plan_timesteps}
+            self._key = key
 
-    def embed(self, encoder: nn.Module, timesteps: Tensor, compute) -> Tensor:
+    def embed(self, timesteps: Tensor, compute) -> Tensor:
         if torch.compiler.is_compiling() or torch.is_grad_enabled():
             return compute(timesteps)
         entry = self._entries.get(id(timesteps))
         if entry is None or entry[0] is not timesteps:
             return compute(timesteps)
-        key = (weights_key(encoder), autocast_key(timesteps.device.type))
-        if entry[1] != key:
-            entry = self._entries[id(timesteps)] = (timesteps, key, compute(timesteps))
-        return entry[2]
+        if entry[1] is None:
+            entry = self._entries[id(timesteps)] = (timesteps, compute(timesteps))
+        return entry[1]
 
 
 def weights_key(module: nn.Module) -> tuple:
@@ -99,7 +103,7 @@ class PerSlotStepEncoder(nn.Module):
                 f"The variable-noise U-Net needs one level per slot, shape (B, {self.horizon}); "
                 f"got {tuple(timesteps.shape)}."
             )
-        return plan_embedding_cache(self).embed(self, timesteps, self.encode)
+        return plan_embedding_cache(self).embed(timesteps, self.encode)
 
     def encode(self, timesteps: Tensor) -> Tensor:
         return self.mlp(self.embed(timesteps).flatten(start_dim=1))
@@ -110,7 +114,7 @@ class PerSlotDPStepEncoder(nn.Sequential):
     (B, T) -> (B, T, E), with a streaming plan's embeddings cached."""
 
     def forward(self, timesteps: Tensor) -> Tensor:
-        return plan_embedding_cache(self).embed(self, timesteps, super().forward)
+        return plan_embedding_cache(self).embed(timesteps, super().forward)
 
 
 class PerPositionFiLMBlock(DiffusionConditionalResidualBlock1d):

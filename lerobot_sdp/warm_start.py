@@ -30,7 +30,6 @@ from torch import Tensor, nn
 from .configuration_sdp import SDPConfig
 from .unet import PerSlotStepEncoder, flatten_encoder_from_dp
 
-WEIGHTS_NAME = SAFETENSORS_SINGLE_FILE
 PREPROCESSOR_NAME = f"{POLICY_PREPROCESSOR_DEFAULT_NAME}.json"
 DP_PREFIX = "diffusion."
 STEP_ENCODER = "unet.diffusion_step_encoder."
@@ -97,10 +96,10 @@ def resolve_checkpoint(init_from: str | Path) -> Path:
     if path.is_dir():
         if not (path / CONFIG_NAME).is_file() and (path / "pretrained_model" / CONFIG_NAME).is_file():
             path = path / "pretrained_model"
-        if not (path / CONFIG_NAME).is_file() or not (path / WEIGHTS_NAME).is_file():
+        if not (path / CONFIG_NAME).is_file() or not (path / SAFETENSORS_SINGLE_FILE).is_file():
             raise ValueError(
-                f"init_from={init_from!r} is a folder without {CONFIG_NAME} and {WEIGHTS_NAME}: point it at "
-                "a Diffusion Policy checkpoint's `pretrained_model` folder (e.g. "
+                f"init_from={init_from!r} is a folder without {CONFIG_NAME} and {SAFETENSORS_SINGLE_FILE}: "
+                "point it at a Diffusion Policy checkpoint's `pretrained_model` folder (e.g. "
                 "outputs/train/dp/checkpoints/last/pretrained_model) or a Hub id."
             )
         return path
@@ -205,7 +204,7 @@ def warm_start(policy: nn.Module, init_from: str) -> WarmStartReport:
     check_compatible(dp_config, config, init_from)
     dp_state = {
         _base_key(k.removeprefix(DP_PREFIX)): v
-        for k, v in load_file(path / WEIGHTS_NAME).items()
+        for k, v in load_file(path / SAFETENSORS_SINGLE_FILE).items()
         if k.startswith(DP_PREFIX)
     }
     model = policy.model

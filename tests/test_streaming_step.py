@@ -45,7 +45,7 @@ def test_step_encoder_runs_once_per_plan_step_not_per_call(step_conditioning):
 
 
 def uncached(monkeypatch):
-    monkeypatch.setattr(PlanEmbeddingCache, "embed", lambda self, encoder, t, compute: compute(t))
+    monkeypatch.setattr(PlanEmbeddingCache, "embed", lambda self, t, compute: compute(t))
 
 
 @pytest.mark.parametrize("step_conditioning", STEP_CONDITIONINGS)
