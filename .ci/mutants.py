@@ -46,6 +46,7 @@ CORE_TESTS = [
     "tests/test_buffer.py",
     "tests/test_modeling_sdp.py",
     "tests/test_streaming_step.py",
+    "tests/test_policy_server.py",
 ]
 _buffer_tests = {p.relative_to(REPO).as_posix() for p in (REPO / "tests").glob("test_buffer*.py")}
 CORE_TESTS += sorted(_buffer_tests - set(CORE_TESTS))  # any later tests/test_buffer*.py
@@ -322,6 +323,31 @@ MUTANTS = [
       "self._queues = before\n",
       "\n",
       "a refused observation stays in the observation history"),
+    # The async server's plan and history (policy_server.py): the buffer in step with the robot.
+    M("A01", "policy_server.py",
+      "rest.shape[1] - 1 >= tb",
+      "rest.shape[1] - 1 > tb",
+      "streams a chunk although a whole chunk is still unexecuted (the buffer runs ahead of the robot)"),
+    M("A02", "policy_server.py",
+      "plan.actions[:, t - plan.start :]",
+      "plan.actions[:, t - plan.start + 1 :]",
+      "the resent plan skips the action at the observation's timestep (the reply is shifted by one)"),
+    M("A03", "policy_server.py",
+      "actions = chunk if rest is None else torch.cat([rest, chunk], dim=1)",
+      "actions = chunk",
+      "the unexecuted rest of the plan is not resent: the new chunk is timed from the observation"),
+    M("A04", "policy_server.py",
+      "if k in self.frames else frames[0]",
+      "if k in self.frames else current",
+      "a timestep never sent repeats the newest frame instead of the next newer one"),
+    M("A05", "policy_server.py",
+      "self._predicted_timesteps.discard(observation_t.get_timestep())",
+      "pass",
+      "a refused observation's timestep stays 'predicted': a corrected one at that timestep is skipped"),
+    M("A06", "policy_server.py",
+      "elif plan is not None and t > plan.end:",
+      "elif plan is not None and t >= plan.end:",
+      "a timestep at the plan's end (the buffer's next chunk starts there) restarts the stream"),
 ]  # fmt: skip
 
 

@@ -48,6 +48,21 @@ PUSHT_STATS = {
     "action": {"min": [12.0, 25.0], "max": [511.0, 511.0], "mean": [250.0, 260.0], "std": [100.0, 90.0]},
 }
 
+KP_STATS = {"min": [0.0] * 16, "max": [512.0] * 16, "mean": [256.0] * 16, "std": [100.0] * 16}
+PUSHT_KEYPOINT_STATS = {**PUSHT_STATS, "observation.environment_state": KP_STATS}
+
+
+def save_tiny_policy(path, **overrides):
+    """A random-weight SDP checkpoint with Push-T keypoint features (what `pusht_sim` observes) and its
+    saved pre/post-processors."""
+    from lerobot_sdp import SDPPolicy, make_sdp_pre_post_processors
+
+    cfg = tiny_config(**overrides)
+    SDPPolicy(cfg).save_pretrained(path)
+    for pipeline in make_sdp_pre_post_processors(cfg, PUSHT_KEYPOINT_STATS):
+        pipeline.save_pretrained(path)
+    return path
+
 
 def history(config, batch_size: int = 2):
     """A dataloader-style observation batch: (B, n_obs_steps, ...) per input feature."""

@@ -8,11 +8,10 @@ from pathlib import Path
 
 import pytest
 import torch
-from sdp_test_utils import PUSHT_STATS, tiny_config
+from sdp_test_utils import PUSHT_KEYPOINT_STATS as STATS
+from sdp_test_utils import save_tiny_policy, tiny_config
 
 BIN = Path(sys.executable).parent
-KP_STATS = {"min": [0.0] * 16, "max": [512.0] * 16, "mean": [256.0] * 16, "std": [100.0] * 16}
-STATS = {**PUSHT_STATS, "observation.environment_state": KP_STATS}
 
 
 def make_robot(tmp_path, **kwargs):
@@ -147,17 +146,6 @@ def test_add_split_state_step_upgrades_an_older_checkpoint(tmp_path):
     pre, _ = make_pre_post_processors(cfg, pretrained_path=str(tmp_path))
     out = pre({"observation.state": torch.rand(1, 18) * 512})
     assert out["observation.environment_state"].shape == (1, 16)
-
-
-def save_tiny_policy(path: Path) -> Path:
-    """A random-weight SDP checkpoint with Push-T keypoint features and its saved pre/post-processors."""
-    from lerobot_sdp import SDPPolicy, make_sdp_pre_post_processors
-
-    cfg = tiny_config()
-    SDPPolicy(cfg).save_pretrained(path)
-    for pipeline in make_sdp_pre_post_processors(cfg, STATS):
-        pipeline.save_pretrained(path)
-    return path
 
 
 def run_rollout(tmp_path, duration: int, *extra: str) -> tuple[str, dict]:

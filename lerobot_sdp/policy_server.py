@@ -1,0 +1,321 @@
+"""`lerobot-sdp-policy-server`: LeRobot's async-inference `PolicyServer` with SDP accepted, one session
+per client.
+
+LeRobot 0.6.1's `python -m lerobot.async_inference.policy_server` never imports third-party plugins,
+accepts only the policy types in `async_inference.constants.SUPPORTED_POLICIES`, and holds one policy
+and one observation queue for whoever connected last. This command imports the plugin, adds `sdp` to
+that list, and gives every client (gRPC peer) its own LeRobot `PolicyServer` (`ClientPolicyServer`):
+its own policy, observation queue, history and SDP buffer, so a client that misbehaves or disappears
+does not disturb the others. Idle sessions are dropped after `--session_timeout_s`.
+
+What SDP needs on top of LeRobot's server (docs/deployment.md, "Async inference"):
+- **History, per client.** LeRobot's server calls `predict_action_chunk` on the one observation it
+  runs. Every observation a client sends (also those the server does not run) is kept by its control
+  timestep, and the policy conditions on the frames of the last `n_obs_steps` timesteps; a timestep
+  that was never sent repeats the next newer frame, as LeRobot pads a history at an episode's start.
+- **The buffer follows what the robot executed.** The client stamps an observation with the timestep
+  of its last executed action, t, and times the reply's action i at t + i (it drops those <= t). The
+  server keeps the plan it sent (`Plan`, normalised actions by timestep); the buffer's next chunk
+  begins where the plan ends. A reply is the plan's unexecuted rest followed by one streamed chunk
+  (N/h denoiser calls), so the buffer advances one chunk per chunk the robot can execute, whatever
+  the number of actions executed between two calls. When a whole chunk or more is still unexecuted,
+  the reply is that rest alone, without a denoiser call. A timestep lower than the plan's start is a
+  new episode: the stream restarts.
+"""
+
+import logging
+import pickle  # nosec: LeRobot's protocol pickles its messages
+import threading
+import time
+from concurrent import futures
+from dataclasses import dataclass, field
+from typing import Any
+
+import draccus
+import grpc
+import torch
+from lerobot.async_inference.configs import PolicyServerConfig
+from lerobot.async_inference.constants import SUPPORTED_POLICIES
+from lerobot.async_inference.helpers import (
+    RemotePolicyConfig,
+    TimedObservation,
+    raw_observation_to_observation,
+)
+from lerobot.async_inference.policy_server import PolicyServer
+from lerobot.configs.policies import PreTrainedConfig
+from lerobot.transport import services_pb2_grpc
+from lerobot.utils.constants import OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
+from torch import Tensor
+
+import lerobot_sdp  # noqa: F401  (registers `sdp` and `pusht_sim`)
+
+if "sdp" not in SUPPORTED_POLICIES:  # the list LeRobot's server checks, extended in place
+    SUPPORTED_POLICIES.append("sdp")
+
+logger = logging.getLogger(__name__)
+FRAMES_KEPT = 64  # received observations kept per client for the history (control timesteps)
+
+
+@dataclass
+class SDPPolicyServerConfig(PolicyServerConfig):
+    max_clients: int = field(default=4, metadata={"help": "Clients served at once (one policy each)"})
+    session_timeout_s: float = field(
+        default=30.0, metadata={"help": "Drop a client's session after this long without a call"}
+    )
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.max_clients < 1:
+            raise ValueError(f"max_clients must be at least 1, got {self.max_clients}")
+        if self.session_timeout_s <= 0:
+            raise ValueError(f"session_timeout_s must be positive, got {self.session_timeout_s}")
+
+
+@dataclass
+class Plan:
+    """The normalised actions (1, L, A) sent to a client for control timesteps start .. start + L - 1.
+    The SDP buffer's next chunk begins at `end`."""
+
+    start: int
+    actions: Tensor
+
+    @property
+    def end(self) -> int:
+        return self.start + self.actions.shape[1]
+
+
+def policy_problem(specs: Any) -> str | None:
+    """Why a client's policy instructions cannot be served, or None."""
+    if not isinstance(specs, RemotePolicyConfig):
+        return f"Policy instructions must be a RemotePolicyConfig, got {type(specs).__name__}."
+    path = specs.pretrained_name_or_path
+    try:
+        config = PreTrainedConfig.from_pretrained(path)
+    except Exception as e:  # a missing folder, an offline Hub id, a broken config.json
+        return f"Cannot read a policy config from {path!r}: {e}"
+    if config.type != specs.policy_type:
+        return (
+            f"{path!r} holds a `{config.type}` policy, and the client asked for `{specs.policy_type}`: "
+            f"start the client with --policy_type={config.type}, or point it at a `{specs.policy_type}` "
+            "checkpoint."
+        )
+    if config.type not in SUPPORTED_POLICIES:
+        return f"Policy type `{config.type}` is not served; this server serves {SUPPORTED_POLICIES}."
+    return feature_problem(config, specs.lerobot_features) if config.type == "sdp" else None
+
+
+def feature_problem(config: PreTrainedConfig, robot_features: dict[str, dict]) -> str | None:
+    """Whether the client's robot observations can feed this SDP policy (state, split state, cameras)."""
+    state = robot_features.get(OBS_STATE)
+    sent = state["shape"][0] if state else 0
+    parts = {
+        k: config.input_features[k].shape[0] for k in (OBS_STATE, OBS_ENV_STATE) if k in config.input_features
+    }
+    if sent != sum(parts.values()):
+        return (
+            f"The robot sends `{OBS_STATE}` with {sent} values and the policy takes {sum(parts.values())} "
+            f"({', '.join(f'{k}: {n}' for k, n in parts.items())}, joined in this order); use the robot "
+            "the policy was trained for, or a policy trained on this robot's data."
+        )
+    missing = [k for k in config.image_features if k not in robot_features]
+    if missing:
+        cameras = [k for k in robot_features if k.startswith(OBS_IMAGES)]
+        return f"The policy needs cameras {missing}; the robot has {cameras}."
+    return None
+
+
+def raw_observation_problem(raw: dict[str, Any], robot_features: dict[str, dict]) -> str | None:
+    """A missing or mis-shaped value in a robot observation, named, or None (LeRobot's own conversion
+    would fail with a bare KeyError or a shape error deep inside torch)."""
+    for key, ft in robot_features.items():
+        if ft["dtype"] in ("image", "video"):
+            name = key.removeprefix(f"{OBS_IMAGES}.")
+            value = raw.get(name)
+            shape = tuple(getattr(value, "shape", ()))
+            if value is None or shape != tuple(ft["shape"]):
+                found = "missing" if value is None else f"of shape {shape}"
+                return f"Observation `{name}` is {found}; expected an image of shape {tuple(ft['shape'])}."
+            continue
+        for name in ft["names"]:
+            if name not in raw:
+                declared = f"the robot declared {len(ft['names'])} values for `{key}`"
+                return f"Observation is missing `{name}` ({declared})."
+            if getattr(raw[name], "shape", ()) not in ((), (1,)):
+                return f"Observation `{name}` has shape {tuple(raw[name].shape)}; expected one number."
+    return None
+
+
+class BadObservationError(ValueError):
+    """A robot observation with a missing or mis-shaped value."""
+
+
+class ClientPolicyServer(PolicyServer):
+    """LeRobot's `PolicyServer` for one client. For SDP it keeps the client's observation history and
+    `Plan` (module docstring); for any policy, a refused observation or setup reaches the client as an
+    INVALID_ARGUMENT error with the reason, instead of a silent empty reply."""
+
+    def __init__(self, config: SDPPolicyServerConfig):
+        super().__init__(config)
+        self.frames: dict[int, TimedObservation] = {}
+        self.plan: Plan | None = None
+        self.error: str | None = None
+        self.current: TimedObservation | None = None
+        self.last_seen = time.monotonic()
+
+    def _reset_server(self) -> None:
+        super()._reset_server()
+        self.frames = {}
+        self.plan = None
+        if self.policy is not None:
+            self.policy.reset()
+
+    def SendPolicyInstructions(self, request, context):  # noqa: N802 (gRPC's name)
+        problem = policy_problem(pickle.loads(request.data))  # nosec
+        if problem:
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, problem)
+        return super().SendPolicyInstructions(request, context)
+
+    def GetActions(self, request, context):  # noqa: N802 (gRPC's name)
+        reply = super().GetActions(request, context)
+        if self.error is not None:
+            message, self.error = self.error, None
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, message)
+        return reply
+
+    def SendObservations(self, request_iterator, context):  # noqa: N802 (gRPC's name)
+        try:
+            return super().SendObservations(request_iterator, context)
+        except BadObservationError as e:
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
+
+    def _enqueue_observation(self, obs: TimedObservation) -> bool:
+        problem = raw_observation_problem(obs.get_observation(), self.lerobot_features)
+        if problem:  # LeRobot's similarity check and conversion would fail on it with a bare KeyError
+            raise BadObservationError(f"Observation #{obs.get_timestep()}: {problem}")
+        self.frames[obs.get_timestep()] = obs
+        for old in sorted(self.frames)[:-FRAMES_KEPT]:
+            del self.frames[old]
+        return super()._enqueue_observation(obs)
+
+    def _predict_action_chunk(self, observation_t: TimedObservation):
+        self.current = observation_t
+        try:
+            return super()._predict_action_chunk(observation_t)
+        except (ValueError, KeyError, RuntimeError) as e:  # e.g. SDP refusing NaN; LeRobot logs and drops it
+            self.error = str(e)
+            with self._predicted_timesteps_lock:  # a corrected observation at this timestep may run
+                self._predicted_timesteps.discard(observation_t.get_timestep())
+            raise
+
+    def _get_action_chunk(self, observation: dict[str, Tensor]) -> Tensor:
+        if self.policy_type != "sdp":
+            return super()._get_action_chunk(observation)
+        t = self.current.get_timestep()
+        return self.sdp_reply(self._history(observation, t), t)[:, : self.actions_per_chunk]
+
+    def sdp_reply(self, history: dict[str, Tensor], t: int) -> Tensor:
+        """The actions for timesteps t, t + 1, ...: the plan's unexecuted rest, then one streamed chunk."""
+        tb = self.policy.config.n_action_steps
+        plan = self.plan
+        if plan is not None and t < plan.start:
+            logger.info(
+                "Client timestep went back from %d to %d: a new episode, the stream restarts.", plan.start, t
+            )
+            self.policy.reset()
+            self.frames = {k: v for k, v in self.frames.items() if k <= t}
+            plan = None
+        elif plan is not None and t > plan.end:  # executed past what was sent: not LeRobot's client
+            logger.warning(
+                "Client executed up to %d, past the plan's end %d: the stream restarts.", t, plan.end
+            )
+            self.policy.drop_queued_actions()
+            plan = None
+        rest = plan.actions[:, t - plan.start :] if plan is not None else None
+        if rest is not None and rest.shape[1] - 1 >= tb:  # the buffer is a chunk ahead of the robot
+            return rest
+        chunk = self.policy.predict_action_chunk(history)
+        actions = chunk if rest is None else torch.cat([rest, chunk], dim=1)
+        self.plan = Plan(t, actions)
+        return actions
+
+    def _history(self, current: dict[str, Tensor], t: int) -> dict[str, Tensor]:
+        """(1, n_obs_steps, ...) per input feature, from the frames received for t - n_obs_steps + 1 .. t."""
+        frames = [current]
+        for k in range(t - 1, t - self.policy.config.n_obs_steps, -1):
+            frames.insert(0, self._process(self.frames[k]) if k in self.frames else frames[0])
+        return {
+            key: torch.stack([f[key] for f in frames], dim=1) for key in self.policy.config.input_features
+        }
+
+    def _process(self, frame: TimedObservation) -> dict[str, Tensor]:
+        raw = frame.get_observation()
+        return self.preprocessor(
+            raw_observation_to_observation(raw, self.lerobot_features, self.policy_image_features)
+        )
+
+
+class SDPPolicyServer(services_pb2_grpc.AsyncInferenceServicer):
+    """The gRPC service: routes each call to its client's `ClientPolicyServer` (by gRPC peer)."""
+
+    def __init__(self, config: SDPPolicyServerConfig):
+        self.config = config
+        self.sessions: dict[str, ClientPolicyServer] = {}
+        self._lock = threading.Lock()
+
+    def session(self, context) -> ClientPolicyServer:
+        peer, now = context.peer(), time.monotonic()
+        with self._lock:
+            for gone in [
+                p for p, s in self.sessions.items() if now - s.last_seen > self.config.session_timeout_s
+            ]:
+                logger.info(
+                    "Dropping the session of %s (no call for %.0f s).",
+                    gone,
+                    now - self.sessions[gone].last_seen,
+                )
+                self.sessions.pop(gone).stop()
+            session = self.sessions.get(peer)
+            if session is None:
+                if len(self.sessions) >= self.config.max_clients:
+                    context.abort(
+                        grpc.StatusCode.RESOURCE_EXHAUSTED,
+                        f"This server already serves {len(self.sessions)} clients (--max_clients="
+                        f"{self.config.max_clients}); retry later or start it with a higher --max_clients.",
+                    )
+                session = self.sessions[peer] = ClientPolicyServer(self.config)
+            session.last_seen = now
+        return session
+
+    def Ready(self, request, context):  # noqa: N802 (gRPC's names, from here on)
+        return self.session(context).Ready(request, context)
+
+    def SendPolicyInstructions(self, request, context):  # noqa: N802
+        return self.session(context).SendPolicyInstructions(request, context)
+
+    def SendObservations(self, request_iterator, context):  # noqa: N802
+        return self.session(context).SendObservations(request_iterator, context)
+
+    def GetActions(self, request, context):  # noqa: N802
+        return self.session(context).GetActions(request, context)
+
+
+def start_server(config: SDPPolicyServerConfig) -> tuple[grpc.Server, SDPPolicyServer, int]:
+    """Start the service on `config.host:config.port`; returns the bound port."""
+    service = SDPPolicyServer(config)
+    # Per client: one GetActions waiting for an observation, one SendObservations, a Ready or setup.
+    server = grpc.server(futures.ThreadPoolExecutor(max_workers=4 * config.max_clients))
+    services_pb2_grpc.add_AsyncInferenceServicer_to_server(service, server)
+    port = server.add_insecure_port(f"{config.host}:{config.port}")
+    server.start()
+    return server, service, port
+
+
+@draccus.wrap()
+def serve(config: SDPPolicyServerConfig) -> None:
+    server, _, port = start_server(config)
+    logger.info("SDP policy server on %s:%d (policies: %s)", config.host, port, ", ".join(SUPPORTED_POLICIES))
+    server.wait_for_termination()
+
+
+def main() -> None:
+    serve()

@@ -1,0 +1,408 @@
+"""`lerobot-sdp-policy-server`: LeRobot's async PolicyServer with SDP, one session per client; the plan
+and history that keep SDP's buffer in step with what the robot executed; faults reach the client."""
+
+import json
+import logging
+import os
+import pickle
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+import torch
+from sdp_test_utils import PUSHT_KEYPOINT_STATS, history, save_tiny_policy, tiny_config
+
+TB = 4  # tiny_config's n_action_steps
+
+
+@pytest.fixture
+def server_mod(tmp_path, monkeypatch):
+    """The module, imported with the working directory in tmp (LeRobot's server logger makes `logs/`)."""
+    monkeypatch.chdir(tmp_path)
+    from lerobot_sdp import policy_server
+
+    return policy_server
+
+
+def pusht_features(tmp_path) -> dict:
+    from lerobot.async_inference.helpers import map_robot_keys_to_lerobot_features
+    from lerobot.robots.utils import make_robot_from_config
+
+    from lerobot_sdp.robots import PushTSimConfig
+
+    robot = make_robot_from_config(PushTSimConfig(calibration_dir=tmp_path / "calibration"))
+    return map_robot_keys_to_lerobot_features(robot)
+
+
+def raw_observation(agent_x: float = 100.0) -> dict:
+    from lerobot_sdp.robots.pusht_sim import AGENT_KEYS, KEYPOINT_KEYS
+
+    values = {key: 200.0 + i for i, key in enumerate(AGENT_KEYS + KEYPOINT_KEYS)}
+    return {**values, "agent_x.pos": agent_x, "task": ""}
+
+
+def session_with(server_mod, policy, tmp_path=None, actions_per_chunk: int = 100):
+    """A ClientPolicyServer holding `policy`, as SendPolicyInstructions would leave it."""
+    from lerobot_sdp import make_sdp_pre_post_processors
+
+    session = server_mod.ClientPolicyServer(server_mod.SDPPolicyServerConfig())
+    session.policy, session.policy_type, session.actions_per_chunk = policy, "sdp", actions_per_chunk
+    session.preprocessor, session.postprocessor = make_sdp_pre_post_processors(
+        policy.config, PUSHT_KEYPOINT_STATS
+    )
+    if tmp_path is not None:
+        session.lerobot_features = pusht_features(tmp_path)
+    return session
+
+
+def twin_policies(**overrides):
+    """Two SDP policies with the same weights: the server's, and a reference streamed by hand."""
+    from lerobot_sdp import SDPPolicy
+
+    torch.manual_seed(0)
+    served = SDPPolicy(tiny_config(**overrides)).eval()
+    reference = SDPPolicy(tiny_config(**overrides)).eval()
+    reference.load_state_dict(served.state_dict())
+    return served, reference
+
+
+def counted(policy) -> list:
+    """Record every streaming call (predict_action_chunk) the policy makes."""
+    calls, original = [], policy.predict_action_chunk
+
+    def wrapper(*args, **kwargs):
+        calls.append(1)
+        return original(*args, **kwargs)
+
+    policy.predict_action_chunk = wrapper
+    return calls
+
+
+def test_reply_is_the_unexecuted_plan_then_one_streamed_chunk(server_mod):
+    """The buffer advances one chunk per reply that streams; the reply's head is what the robot has
+    not executed yet; a chunk or more still ahead of the robot means no denoiser call."""
+    served, reference = twin_policies()
+    session = session_with(server_mod, served)
+    calls = counted(served)
+    obs = history(served.config, batch_size=1)
+
+    torch.manual_seed(1)
+    first = session.sdp_reply(obs, 0)
+    torch.manual_seed(1)
+    assert torch.allclose(first, reference.predict_action_chunk(obs))
+    assert first.shape == (1, TB, 2) and (session.plan.start, session.plan.end) == (0, TB)
+
+    # The robot executed actions 0..2 of 0..3: the reply is actions 2..3 again, then the next chunk.
+    torch.manual_seed(2)
+    second = session.sdp_reply(obs, 2)
+    torch.manual_seed(2)
+    assert torch.equal(second[:, :2], first[:, 2:])
+    assert torch.allclose(second[:, 2:], reference.predict_action_chunk(obs))
+    assert (session.plan.start, session.plan.end) == (2, 2 + 2 + TB) and len(calls) == 2
+
+    # One more action executed: 4 of the plan's actions are still ahead, a whole chunk: no denoising.
+    third = session.sdp_reply(obs, 3)
+    assert torch.equal(third, second[:, 1:]) and len(calls) == 2 and session.plan.start == 2
+
+    # Two more: 3 ahead, so one more chunk streams after them, continuing the reference stream.
+    torch.manual_seed(3)
+    fourth = session.sdp_reply(obs, 5)
+    torch.manual_seed(3)
+    assert torch.equal(fourth[:, :3], second[:, 3:])
+    assert torch.allclose(fourth[:, 3:], reference.predict_action_chunk(obs))
+    assert (session.plan.start, session.plan.end) == (5, 2 + 2 + 2 * TB)
+
+    # At the plan's end, where the buffer's next chunk starts: nothing to resend, the stream goes on.
+    torch.manual_seed(5)
+    fifth = session.sdp_reply(obs, session.plan.end)
+    torch.manual_seed(5)
+    assert torch.allclose(fifth, reference.predict_action_chunk(obs)) and len(calls) == 4
+
+
+@pytest.mark.parametrize("jump", ["back", "past_the_plan"])
+def test_stream_restarts_when_the_timestep_leaves_the_plan(server_mod, jump):
+    """A timestep before the plan (a new episode) or past its end restarts the stream from the primer."""
+    served, reference = twin_policies()
+    session = session_with(server_mod, served)
+    obs = history(served.config, batch_size=1)
+    session.sdp_reply(obs, 10)
+    session.sdp_reply(obs, 12)
+    t = 0 if jump == "back" else session.plan.end + 3
+    torch.manual_seed(4)
+    restarted = session.sdp_reply(obs, t)
+    torch.manual_seed(4)
+    assert torch.allclose(restarted, reference.predict_action_chunk(obs))  # the reference's first chunk
+    assert (session.plan.start, session.plan.end) == (t, t + TB)
+
+
+def test_history_is_the_clients_frames_by_timestep(server_mod, tmp_path):
+    """Frame t - k is the observation sent at that timestep; one never sent repeats the next newer."""
+    from lerobot.async_inference.helpers import TimedObservation
+
+    served, _ = twin_policies(n_obs_steps=3)
+    session = session_with(server_mod, served, tmp_path)
+
+    def sent(t: int, agent_x: float):
+        obs = TimedObservation(timestamp=time.time(), timestep=t, observation=raw_observation(agent_x))
+        session.frames[t] = obs
+        return session._process(obs)
+
+    old, current = sent(7, 150.0), sent(9, 300.0)  # nothing was sent at timestep 8
+    stacked = session._history(current, 9)["observation.state"]
+    assert stacked.shape == (1, 3, 2)
+    assert torch.equal(stacked[:, 0], old["observation.state"])
+    assert torch.equal(stacked[:, 1], current["observation.state"]) and torch.equal(
+        stacked[:, 2], stacked[:, 1]
+    )
+    assert not torch.equal(stacked[:, 0], stacked[:, 2])
+    middle = sent(8, 220.0)
+    assert torch.equal(session._history(current, 9)["observation.state"][:, 1], middle["observation.state"])
+
+
+def test_raw_observation_and_feature_problems_are_named(server_mod, tmp_path):
+    import numpy as np
+    from lerobot.configs.policies import PreTrainedConfig
+
+    features = pusht_features(tmp_path)
+    assert server_mod.raw_observation_problem(raw_observation(), features) is None
+    missing = raw_observation()
+    del missing["block_kp3_x.pos"]
+    assert "missing `block_kp3_x.pos`" in server_mod.raw_observation_problem(missing, features)
+    shaped = {**raw_observation(), "agent_y.pos": np.zeros(3)}
+    assert "`agent_y.pos` has shape (3,)" in server_mod.raw_observation_problem(shaped, features)
+    camera = {**features, "observation.images.top": {"dtype": "image", "shape": (96, 96, 3), "names": None}}
+    wrong = {**raw_observation(), "top": np.zeros((64, 64, 3))}
+    assert "of shape (64, 64, 3)" in server_mod.raw_observation_problem(wrong, camera)
+
+    config = PreTrainedConfig.from_pretrained(save_tiny_policy(tmp_path / "sdp"))
+    assert server_mod.feature_problem(config, features) is None
+    fewer = {"observation.state": {**features["observation.state"], "shape": (17,)}}
+    assert "sends `observation.state` with 17 values and the policy takes 18" in server_mod.feature_problem(
+        config, fewer
+    )
+
+
+# ---- over real gRPC on loopback ----------------------------------------------------------------------
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def server(server_mod):
+    config = server_mod.SDPPolicyServerConfig(
+        host="127.0.0.1", port=free_port(), fps=10, obs_queue_timeout=0.3, session_timeout_s=2.0
+    )
+    grpc_server, service, port = server_mod.start_server(config)
+    yield service, f"127.0.0.1:{port}"
+    grpc_server.stop(grace=None)
+
+
+def robot_client(tmp_path, address: str, policy_dir, name: str):
+    from lerobot.async_inference.configs import RobotClientConfig
+    from lerobot.async_inference.robot_client import RobotClient
+
+    from lerobot_sdp.robots import PushTSimConfig
+
+    robot = PushTSimConfig(calibration_dir=tmp_path / f"calibration_{name}", seed=len(name))
+    config = RobotClientConfig(
+        policy_type="sdp",
+        pretrained_name_or_path=str(policy_dir),
+        robot=robot,
+        actions_per_chunk=3 * TB,
+        server_address=address,
+        fps=10,
+    )
+    return RobotClient(config)
+
+
+class Running:
+    """A RobotClient's two threads (action receiver, control loop), as `async_client` runs them."""
+
+    def __init__(self, client):
+        assert client.start(), "the client could not set up its policy on the server"
+        self.client = client
+        self.threads = [
+            threading.Thread(target=client.receive_actions, daemon=True),
+            threading.Thread(target=client.control_loop, kwargs={"task": ""}, daemon=True),
+        ]
+        for thread in self.threads:
+            thread.start()
+
+    def stop(self):
+        self.client.shutdown_event.set()
+        self.threads[1].join(timeout=10)
+        self.client.stop()  # disconnects the robot, closes the channel
+        self.threads[0].join(timeout=10)
+        assert not any(t.is_alive() for t in self.threads)
+
+
+def wait_for(condition, timeout: float = 30.0) -> None:
+    end = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < end, "timed out"
+        time.sleep(0.05)
+
+
+def client_process(tmp_path, address: str, policy_dir, stats_path):
+    """LeRobot's robot_client CLI with a simulated robot, as a user runs it (it loads the plugin itself).
+    Each RobotClient in its own process: clients are told apart by their connection."""
+    cmd = [
+        sys.executable,
+        "-m",
+        "lerobot.async_inference.robot_client",
+        "--robot.type=pusht_sim",
+        f"--robot.calibration_dir={tmp_path / 'calibration_cli'}",
+        f"--robot.stats_path={stats_path}",
+        "--policy_type=sdp",
+        f"--pretrained_name_or_path={policy_dir}",
+        f"--actions_per_chunk={3 * TB}",
+        f"--server_address={address}",
+        "--fps=10",
+    ]
+    env = {**os.environ, "HF_HUB_OFFLINE": "1"}
+    return subprocess.Popen(
+        cmd, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
+
+
+@pytest.mark.slow
+def test_robot_clients_drive_pusht_sim_through_the_server(server, tmp_path):
+    """Two LeRobot RobotClients with simulated robots (one through LeRobot's CLI), each served by its own
+    SDP session; one disconnecting mid-episode leaves the other served and its session is dropped after
+    the timeout; the served plan stays within one reply of what the robot executed."""
+    from lerobot_sdp import SDPPolicy
+
+    service, address = server
+    policy_dir = save_tiny_policy(tmp_path / "policy")
+    stats_path = tmp_path / "cli_robot.json"
+    cli = client_process(tmp_path, address, policy_dir, stats_path)
+    a = Running(robot_client(tmp_path, address, policy_dir, "a"))
+    try:
+
+        def both_served():
+            plans = [s.plan for s in list(service.sessions.values())]
+            return len(plans) == 2 and all(p is not None and p.end >= 15 for p in plans)
+
+        wait_for(both_served, timeout=60)
+        policies = [s.policy for s in service.sessions.values()]
+        assert all(isinstance(p, SDPPolicy) for p in policies) and policies[0] is not policies[1]
+        a.stop()  # mid-episode
+        wait_for(lambda: len(service.sessions) == 1, timeout=10)  # dropped after session_timeout_s
+        (left,) = service.sessions.values()
+        reached = left.plan.end
+        wait_for(lambda: left.plan.end >= reached + 2 * TB)  # the other client is still served
+    finally:
+        if any(t.is_alive() for t in a.threads):
+            a.stop()
+        cli.send_signal(signal.SIGINT)
+        log = cli.communicate(timeout=30)[0]
+    stats = json.loads(stats_path.read_text())
+    executed = stats["actions_sent"] - 1  # the timestep of its last action
+    assert left.plan.start <= executed < left.plan.end <= executed + 1 + 3 * TB, (
+        left.plan.start,
+        executed,
+        log,
+    )
+    assert "Failed to connect" not in log and stats["actions_sent"] >= 15
+
+
+class StubClient:
+    """A bare gRPC client speaking LeRobot's protocol, to send what LeRobot's RobotClient would not."""
+
+    def __init__(self, address: str):
+        import grpc
+        from lerobot.transport import services_pb2, services_pb2_grpc
+
+        self.pb2 = services_pb2
+        # its own connection: channels of one process otherwise share one, hence one server session
+        self.channel = grpc.insecure_channel(address, options=[("grpc.use_local_subchannel_pool", 1)])
+        self.stub = services_pb2_grpc.AsyncInferenceStub(self.channel)
+        self.stub.Ready(services_pb2.Empty())
+
+    def setup(self, tmp_path, policy_dir, policy_type: str = "sdp"):
+        from lerobot.async_inference.helpers import RemotePolicyConfig
+
+        specs = RemotePolicyConfig(policy_type, str(policy_dir), pusht_features(tmp_path), 3 * TB)
+        self.stub.SendPolicyInstructions(self.pb2.PolicySetup(data=pickle.dumps(specs)))
+
+    def act(self, raw: dict, timestep: int):
+        """Send one must-go observation and return the actions (TimedAction list)."""
+        from lerobot.async_inference.helpers import TimedObservation
+        from lerobot.transport.utils import send_bytes_in_chunks
+
+        obs = TimedObservation(timestamp=time.time(), timestep=timestep, observation=raw, must_go=True)
+        self.stub.SendObservations(send_bytes_in_chunks(pickle.dumps(obs), self.pb2.Observation, silent=True))
+        reply = self.stub.GetActions(self.pb2.Empty())
+        return pickle.loads(reply.data) if reply.data else []
+
+
+def rpc_error(call):
+    import grpc
+
+    with pytest.raises(grpc.RpcError) as info:
+        call()
+    return info.value
+
+
+def test_a_checkpoint_that_is_not_the_asked_policy_is_refused_on_the_client(server, tmp_path):
+    import grpc
+    from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
+
+    _, address = server
+    dp_dir = tmp_path / "dp"
+    cfg = tiny_config()
+    DiffusionConfig(input_features=cfg.input_features, output_features=cfg.output_features).save_pretrained(
+        dp_dir
+    )
+    client = StubClient(address)
+    error = rpc_error(lambda: client.setup(tmp_path, dp_dir))
+    assert error.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert "holds a `diffusion` policy" in error.details() and "--policy_type=diffusion" in error.details()
+    error = rpc_error(lambda: client.setup(tmp_path, tmp_path / "nowhere"))
+    assert "Cannot read a policy config" in error.details()
+    # LeRobot's own RobotClient reports it and does not start
+    records = []
+    handler = logging.Handler(level=logging.ERROR)
+    handler.emit = lambda record: records.append(record.getMessage())
+    logging.getLogger("robot_client").addHandler(handler)
+    try:
+        assert not robot_client(tmp_path, address, dp_dir, "c").start()
+    finally:
+        logging.getLogger("robot_client").removeHandler(handler)
+    assert any("Failed to connect" in r and "holds a `diffusion` policy" in r for r in records), records
+
+
+def test_bad_observations_are_refused_on_the_client_and_the_server_goes_on(server, tmp_path):
+    """A missing key, a mis-shaped value, NaN: each an INVALID_ARGUMENT naming it; the same client then
+    gets actions for a good observation at the same timestep, and another client was served meanwhile."""
+    import grpc
+    import numpy as np
+
+    service, address = server
+    policy_dir = save_tiny_policy(tmp_path / "policy")
+    faulty, healthy = StubClient(address), StubClient(address)
+    faulty.setup(tmp_path, policy_dir)
+    healthy.setup(tmp_path, policy_dir)
+    missing = raw_observation()
+    del missing["block_kp5_y.pos"]
+    bad = {
+        "missing `block_kp5_y.pos`": missing,
+        "`agent_x.pos` has shape (2,)": {**raw_observation(), "agent_x.pos": np.array([1.0, 2.0])},
+        "contains NaN or inf": {**raw_observation(), "block_kp0_x.pos": float("nan")},
+    }
+    for t, (message, raw) in enumerate(bad.items()):
+        error = rpc_error(lambda raw=raw, t=t: faulty.act(raw, t))
+        assert error.code() == grpc.StatusCode.INVALID_ARGUMENT and message in error.details()
+        assert len(healthy.act(raw_observation(100.0 + t), t)) >= TB
+    actions = faulty.act(raw_observation(), len(bad) - 1)
+    assert len(actions) == TB and actions[0].get_timestep() == len(bad) - 1
+    assert torch.isfinite(torch.stack([a.get_action() for a in actions])).all()
+    assert len(service.sessions) == 2
