@@ -161,6 +161,11 @@ def test_history_is_the_clients_frames_by_timestep(server_mod, tmp_path):
     assert not torch.equal(stacked[:, 0], stacked[:, 2])
     middle = sent(8, 220.0)
     assert torch.equal(session._history(current, 9)["observation.state"][:, 1], middle["observation.state"])
+    del session.frames[7]  # now 7 was never sent: it repeats 8, the next newer frame, not the current one
+    stacked = session._history(current, 9)["observation.state"]
+    assert torch.equal(stacked[:, 0], middle["observation.state"]) and torch.equal(
+        stacked[:, 1], stacked[:, 0]
+    )
 
 
 def test_raw_observation_and_feature_problems_are_named(server_mod, tmp_path):
@@ -333,12 +338,12 @@ class StubClient:
         specs = RemotePolicyConfig(policy_type, str(policy_dir), pusht_features(tmp_path), 3 * TB)
         self.stub.SendPolicyInstructions(self.pb2.PolicySetup(data=pickle.dumps(specs)))
 
-    def act(self, raw: dict, timestep: int):
-        """Send one must-go observation and return the actions (TimedAction list)."""
+    def act(self, raw: dict, timestep: int, must_go: bool = True):
+        """Send one observation and return the actions (TimedAction list)."""
         from lerobot.async_inference.helpers import TimedObservation
         from lerobot.transport.utils import send_bytes_in_chunks
 
-        obs = TimedObservation(timestamp=time.time(), timestep=timestep, observation=raw, must_go=True)
+        obs = TimedObservation(timestamp=time.time(), timestep=timestep, observation=raw, must_go=must_go)
         self.stub.SendObservations(send_bytes_in_chunks(pickle.dumps(obs), self.pb2.Observation, silent=True))
         reply = self.stub.GetActions(self.pb2.Empty())
         return pickle.loads(reply.data) if reply.data else []
@@ -402,7 +407,8 @@ def test_bad_observations_are_refused_on_the_client_and_the_server_goes_on(serve
         error = rpc_error(lambda raw=raw, t=t: faulty.act(raw, t))
         assert error.code() == grpc.StatusCode.INVALID_ARGUMENT and message in error.details()
         assert len(healthy.act(raw_observation(100.0 + t), t)) >= TB
-    actions = faulty.act(raw_observation(), len(bad) - 1)
+    # not must-go, so LeRobot's server would skip it if the refused timestep counted as predicted
+    actions = faulty.act(raw_observation(), len(bad) - 1, must_go=False)
     assert len(actions) == TB and actions[0].get_timestep() == len(bad) - 1
     assert torch.isfinite(torch.stack([a.get_action() for a in actions])).all()
     assert len(service.sessions) == 2
