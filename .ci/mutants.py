@@ -47,6 +47,7 @@ CORE_TESTS = [
     "tests/test_modeling_sdp.py",
     "tests/test_streaming_step.py",
     "tests/test_policy_server.py",
+    "tests/test_model_card.py",
 ]
 _buffer_tests = {p.relative_to(REPO).as_posix() for p in (REPO / "tests").glob("test_buffer*.py")}
 CORE_TESTS += sorted(_buffer_tests - set(CORE_TESTS))  # any later tests/test_buffer*.py
@@ -348,6 +349,15 @@ MUTANTS = [
       "elif plan is not None and t > plan.end:",
       "elif plan is not None and t >= plan.end:",
       "a timestep at the plan's end (the buffer's next chunk starts there) restarts the stream"),
+    # The model card under LeRobot's main branch (model_card.py).
+    M("C01", "model_card.py",
+      'title = f"# Model Card for {POLICY_TYPE}\\n"',
+      'title = "# Model Card for "',
+      "every policy's card (not only SDP's) gets the SDP introduction"),
+    M("C02", "model_card.py",
+      "module.generate_model_card = generate_model_card  # callers look it up in the module when they run",
+      "pass",
+      "the free function is never wrapped: SDP cards lose their introduction on LeRobot main"),
 ]  # fmt: skip
 
 

@@ -7,10 +7,13 @@ from . import torchcodec_notice
 # First, before anything builds a LeRobot dataset config: LeRobot's torchcodec fallback in one line.
 torchcodec_notice.install()
 
+from . import model_card  # noqa: E402
 from .configuration_sdp import SDPConfig  # noqa: E402
 from .modeling_sdp import SDPPolicy  # noqa: E402
 from .processor_sdp import make_sdp_pre_post_processors  # noqa: E402
 from .robomimic import RobomimicEnvConfig  # noqa: E402
 from .robots import PushTSimConfig  # noqa: E402
+
+model_card.install()  # LeRobot's main branch renders model cards outside the policy class
 
 __all__ = ["PushTSimConfig", "RobomimicEnvConfig", "SDPConfig", "SDPPolicy", "make_sdp_pre_post_processors"]

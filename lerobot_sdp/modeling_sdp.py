@@ -34,17 +34,11 @@ from .buffer import (
 )
 from .configuration_sdp import SDPConfig
 from .ema import ema_decay, ema_update
+from .model_card import add_introduction
 from .noise_schemes import sample_levels
 from .schedule import PerSlotSchedule, StepCoefficients
 from .unet import make_variable_noise, plan_embedding_cache
 from .warm_start import WarmStartReport, merged_stats, warm_start
-
-MODEL_CARD_INTRO = (
-    "[Streaming Diffusion Policy (SDP)](https://arxiv.org/abs/2406.04806) keeps a buffer of partially "
-    "denoised future actions at increasing noise levels, so every executed action chunk costs N/h denoiser "
-    "calls instead of Diffusion Policy's N. Trained with the `lerobot_policy_sdp` plugin "
-    "(`--policy.type=sdp`); install the plugin to load this model with LeRobot.\n"
-)
 
 # Set while `SDPPolicy.from_pretrained` builds the policy: the checkpoint's weights replace the warm
 # start's, and the Diffusion Policy checkpoint it named may no longer be reachable.
@@ -473,10 +467,7 @@ class SDPPolicy(PreTrainedPolicy):
 
     def generate_model_card(self, *args, **kwargs):
         """LeRobot's card, introduced as SDP (LeRobot's template only knows its built-in policies)."""
-        card = super().generate_model_card(*args, **kwargs)
-        title = f"# Model Card for {self.name}\n"
-        card.content = card.content.replace(title, title + "\n" + MODEL_CARD_INTRO, 1)
-        return card
+        return add_introduction(super().generate_model_card(*args, **kwargs))
 
     @classmethod
     def from_pretrained(cls, *args, **kwargs):

@@ -68,6 +68,33 @@ def test_ema_follows_the_authors_schedule_and_serves_eval():
     assert not any(p is q for p in policy.get_optim_params() for q in policy.ema_model.parameters())
 
 
+def test_trainer_ema_beside_sdp_ema_never_averages_twice():
+    """LeRobot main's `lerobot-train --ema.enable=true` keeps diffusers' EMAModel over
+    `policy.parameters()` and swaps its shadow in to evaluate and to save `pretrained_model_ema`.
+    SDP's own EMA copy does not require grad, which EMAModel copies instead of averaging: with both
+    on, the policy samples from SDP's single EMA of the live weights, never an EMA of that EMA."""
+    from diffusers.training_utils import EMAModel
+
+    cfg = tiny_config()
+    policy = SDPPolicy(cfg)
+    trainer_ema = EMAModel(policy.parameters(), decay=0.9999, use_ema_warmup=True, power=0.75)  # main's call
+    optimizer = torch.optim.SGD(policy.get_optim_params(), lr=0.5)
+    for _ in range(4):  # lerobot-train's order: optimizer step, policy.update(), then the trainer's EMA
+        optimizer.zero_grad()
+        policy.forward(training_batch(cfg))[0].backward()
+        optimizer.step()
+        policy.update()
+        trainer_ema.step(policy.parameters())
+    sdp_ema = {k: v.clone() for k, v in policy.ema_model.state_dict().items()}
+    params = list(policy.parameters())
+    trainer_ema.store(params)
+    trainer_ema.copy_to(params)  # main's `_ema_weights` context
+    assert policy.eval()._sampling_model() is policy.ema_model
+    for key, value in policy.ema_model.state_dict().items():
+        torch.testing.assert_close(value, sdp_ema[key], atol=0, rtol=0)
+    trainer_ema.restore(params)
+
+
 def test_save_load_round_trip_gives_identical_actions(tmp_path):
     cfg = tiny_config(action_primer="constant")
     policy = SDPPolicy(cfg, dataset_stats=PUSHT_STATS)
