@@ -10,7 +10,7 @@ from types import ModuleType
 
 from lerobot.utils.utils import init_logging
 
-from . import compiled, latency, quality, throughput, train_profile
+from . import compiled, deployment, latency, quality, throughput, train_profile
 
 SUBCOMMANDS: dict[str, ModuleType] = {
     "latency": latency,
@@ -18,6 +18,7 @@ SUBCOMMANDS: dict[str, ModuleType] = {
     "quality": quality,
     "train-profile": train_profile,
     "throughput": throughput,
+    "deployment": deployment,
 }
 
 
