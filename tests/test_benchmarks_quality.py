@@ -151,6 +151,25 @@ def test_wall_time_skips_the_stop_between_sessions(tmp_path):
     assert wall_time_at(marks, 200) == pytest.approx(20.0)
 
 
+def test_exact_steps_come_from_the_progress_bar_after_a_resume(tmp_path):
+    """LeRobot rounds `step:` to a thousand; its progress bar counts the steps left after a resume.
+    A run of 3,000 steps resumed at 2,000: the bar reads n/1000, the exact step is 2,000 + n."""
+    log = tmp_path / "train.log"
+    bar = "Training:  10%|█         | {n}/{total} [00:40<05:00,  5.00step/s]"
+    lines = [
+        bar.format(n=200, total=3000) + "INFO 2026-11-23 10:00:40 ot_train.py:641 step:200 smpl:13K",
+        bar.format(n=400, total=3000) + "INFO 2026-11-23 10:01:20 ot_train.py:641 step:400 smpl:26K",
+        bar.format(n=200, total=1000) + "INFO 2026-11-23 12:00:20 ot_train.py:641 step:2K smpl:141K",
+        bar.format(n=400, total=1000) + "INFO 2026-11-23 12:01:00 ot_train.py:641 step:2K smpl:154K",
+    ]
+    log.write_text("\n".join(lines) + "\n")
+    assert [s for _, s in step_logs(log, final_step=3000)] == [200, 400, 2200, 2400]
+    assert [s for _, s in step_logs(log)] == [200, 400, 2000, 2000]  # rounded: the interval is lost
+    marks = step_logs(log, final_step=3000)
+    # 0.2 s per step measured; the steps no interval covers (0-200, 400-2200) charged at that rate
+    assert wall_time_at(marks, 2400) == pytest.approx(2400 * 0.2)
+
+
 def test_episode_stats_gives_standard_errors(tmp_path):
     info = {
         "overall": {"avg_max_reward": 0.5, "pc_success": 50.0},

@@ -17,6 +17,10 @@ from datetime import datetime
 from pathlib import Path
 
 STEP_LOG = re.compile(r"(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d) .*?\bstep:(\d+(?:\.\d+)?[KM]?) ")
+# lerobot-train's progress bar, printed on the same line just before a step log: "2000/18000 [07:45<...]"
+# counts this process's steps out of those left, which gives the exact step (LeRobot rounds its own
+# `step:2K` to a thousand, far coarser than the log interval).
+PROGRESS = re.compile(r"(\d+)/(\d+) \[[^\]]*\]\s*\S+ \d{4}-\d\d-\d\d \d\d:\d\d:\d\d ")
 
 
 def parse_step(token: str) -> int:
@@ -24,13 +28,18 @@ def parse_step(token: str) -> int:
     return round(float(token.rstrip("KM")) * scale)
 
 
-def step_logs(train_log: Path) -> list[tuple[datetime, int]]:
+def step_logs(train_log: Path, final_step: int | None = None) -> list[tuple[datetime, int]]:
+    """(time, step) of every step log; exact from the progress bar when `final_step` (the run's
+    --steps) is given, else LeRobot's rounded step."""
     if not train_log.exists():
         return []
     marks = []
     for line in train_log.read_text(errors="replace").splitlines():
         if match := STEP_LOG.search(line):
-            marks.append((datetime.strptime(match[1], "%Y-%m-%d %H:%M:%S"), parse_step(match[2])))
+            step = parse_step(match[2])
+            if final_step is not None and (bar := PROGRESS.search(line)):
+                step = final_step - int(bar[2]) + int(bar[1])
+            marks.append((datetime.strptime(match[1], "%Y-%m-%d %H:%M:%S"), step))
     return marks
 
 

@@ -199,7 +199,7 @@ def execute(
 
 def curve(model_root: Path, here: Path, eval_args: list[str], every: int, final_step: int) -> list[dict]:
     """Every saved K-step checkpoint evaluated on the run's episodes (the last is the run's eval)."""
-    marks = step_logs(model_root / "train.log")
+    marks = step_logs(model_root / "train.log", final_step)
     points = []
     for step in checkpoint_steps(model_root / "train", every):
         eval_dir = here / "eval" if step == final_step else here / "curve" / f"{step:06d}"
