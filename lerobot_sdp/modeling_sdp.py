@@ -403,7 +403,7 @@ class SDPPolicy(PreTrainedPolicy):
         model = self._sampling_model()
         fresh = self._buffer.sample is None
         if fresh:
-            self._buffer.prime(self._primer(model, history, None, generator), generator)
+            self._buffer.prime(self._primer(model, history, generator), generator)
         run = model.streaming_step_fn(history[OBS_STATE].device, compiled)
 
         def step(sample: Tensor, plan: list[StepCoefficients], noise: StreamNoise) -> tuple[Tensor, Tensor]:
@@ -430,18 +430,16 @@ class SDPPolicy(PreTrainedPolicy):
         self,
         model: SDPModel,
         history: dict[str, Tensor],
-        global_cond: Tensor | None,
         generator: torch.Generator | None,
     ) -> Tensor:
         """Clean (normalised) sequence the buffer starts from (paper Sec. "Initializing the buffer").
-        Only "denoise" needs the observation conditioning (computed here when not given)."""
+        Only "denoise" needs the observation conditioning."""
         state = history[OBS_STATE]
         batch_size = state.shape[0]
         shape = (batch_size, self.geometry.horizon, self.config.action_feature.shape[0])
         primer = self.config.action_primer
         if primer == "denoise":
-            if global_cond is None:
-                global_cond = model._prepare_global_conditioning(history)
+            global_cond = model._prepare_global_conditioning(history)
             return model.conditional_sample(batch_size, global_cond, generator)
         if primer == "constant":
             if torch.isnan(self.state_to_action).any():

@@ -92,14 +92,24 @@ def make_sdp_pre_post_processors(
     )
 
 
+def lacks_split_state_step(policy_dir: str | Path, config: PreTrainedConfig) -> bool:
+    """Whether this saved policy takes a separate environment state and its preprocessor has no
+    `SplitStateStep` yet (a checkpoint saved before the step existed cannot run on a robot)."""
+    if split_state_step(config) is None:
+        return False
+    steps = json.loads((Path(policy_dir) / PREPROCESSOR_FILE).read_text())["steps"]
+    return not any(s.get("registry_name") == "sdp_split_state" for s in steps)
+
+
 def add_split_state_step(policy_dir: str | Path) -> bool:
     """Insert `SplitStateStep` (after the rename step) into a saved policy's preprocessor, so that a
     checkpoint saved before the step existed runs on a robot. False when there is nothing to do."""
     policy_dir = Path(policy_dir)
-    step = split_state_step(PreTrainedConfig.from_pretrained(policy_dir))
-    old = json.loads((policy_dir / PREPROCESSOR_FILE).read_text())
-    if step is None or any(s.get("registry_name") == "sdp_split_state" for s in old["steps"]):
+    config = PreTrainedConfig.from_pretrained(policy_dir)
+    if not lacks_split_state_step(policy_dir, config):
         return False
+    step = split_state_step(config)
+    old = json.loads((policy_dir / PREPROCESSOR_FILE).read_text())
     pre = PolicyProcessorPipeline.from_pretrained(
         policy_dir,
         config_filename=PREPROCESSOR_FILE,

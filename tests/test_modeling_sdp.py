@@ -277,7 +277,7 @@ def test_constant_primer_starts_from_the_current_state():
     a_min, a_max = torch.tensor(PUSHT_STATS["action"]["min"]), torch.tensor(PUSHT_STATS["action"]["max"])
     norm_state = (raw - s_min) / (s_max - s_min) * 2 - 1
     batch = {"observation.state": norm_state.unsqueeze(1)}
-    primer = policy._primer(policy.model, batch, torch.zeros(1, 1), None)
+    primer = policy._primer(policy.model, batch, None)
     torch.testing.assert_close(primer[0, 0], ((raw - a_min) / (a_max - a_min) * 2 - 1)[0])
 
 

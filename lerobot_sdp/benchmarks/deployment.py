@@ -31,7 +31,7 @@ from pathlib import Path
 from lerobot.configs.policies import PreTrainedConfig
 
 from ..lerobot_cli import lerobot_bin, subprocess_env
-from ..processor_sdp import PREPROCESSOR_FILE, split_state_step
+from ..processor_sdp import lacks_split_state_step
 
 ENGINES = ("sync", "rtc", "async")
 FPS = 10
@@ -67,11 +67,7 @@ def parse_policies(specs: list[str]) -> dict[str, Path]:
 
 def robot_ready_problem(path: Path) -> str | None:
     """Why the robot's joined `observation.state` cannot reach this policy, or None."""
-    config = PreTrainedConfig.from_pretrained(path)
-    if split_state_step(config) is None:
-        return None
-    steps = json.loads((path / PREPROCESSOR_FILE).read_text())["steps"]
-    if any(s.get("registry_name") == "sdp_split_state" for s in steps):
+    if not lacks_split_state_step(path, PreTrainedConfig.from_pretrained(path)):
         return None
     return (
         f"{path} takes the keypoints as a separate environment state, and its preprocessor lacks SDP's "
@@ -159,8 +155,9 @@ def wait_for_port(port: int, proc: subprocess.Popen, timeout: float = 120) -> No
     raise RuntimeError(f"the policy server did not listen on port {port} within {timeout:.0f} s")
 
 
-def run_async(path: Path, stats: Path, calibration: Path, log_dir: Path, name: str, args) -> None:
-    config = PreTrainedConfig.from_pretrained(path)
+def run_async(
+    path: Path, config: PreTrainedConfig, stats: Path, calibration: Path, log_dir: Path, name: str, args
+) -> None:
     server_cmd = [
         lerobot_bin("lerobot-sdp-policy-server"),
         "--host=127.0.0.1",
@@ -213,7 +210,7 @@ def measure(name: str, path: Path, engine: str, args) -> dict:
     started = time.monotonic()
     try:
         if engine == "async":
-            run_async(path, stats_path, calibration, log_dir, name, args)
+            run_async(path, config, stats_path, calibration, log_dir, name, args)
         else:
             threshold = args.rtc_threshold if engine == "rtc" else None
             rollout = Logged(rollout_cmd(path, stats_path, calibration, args.duration, threshold), log)
