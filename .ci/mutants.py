@@ -48,6 +48,7 @@ CORE_TESTS = [
     "tests/test_streaming_step.py",
     "tests/test_policy_server.py",
     "tests/test_model_card.py",
+    "tests/test_benchmarks_compiled.py",
 ]
 _buffer_tests = {p.relative_to(REPO).as_posix() for p in (REPO / "tests").glob("test_buffer*.py")}
 CORE_TESTS += sorted(_buffer_tests - set(CORE_TESTS))  # any later tests/test_buffer*.py
@@ -358,6 +359,19 @@ MUTANTS = [
       "module.generate_model_card = generate_model_card  # callers look it up in the module when they run",
       "pass",
       "the free function is never wrapped: SDP cards lose their introduction on LeRobot main"),
+    # SDP's bookkeeping against its own U-Net timed alone (benchmarks/compiled.py).
+    M("K01", "benchmarks/compiled.py",
+      "        sample = unet(sample, t, global_cond=global_cond)",
+      "        unet(sample, t, global_cond=global_cond)",
+      "the U-Net calls are not chained: compilation may drop all but the last"),
+    M("K02", "benchmarks/compiled.py",
+      "run()  # compiles",
+      "pass",
+      "no warm-up chunk: compilation is timed as if it were a call"),
+    M("K03", "benchmarks/compiled.py",
+      'out[f"sdp_{mode}"]["chunk_ms_p50"] - out[f"sdp_{mode}"]["nfe_per_chunk"] * ms',
+      'out[f"sdp_{mode}"]["chunk_ms_p50"] - ms',
+      "bookkeeping subtracts one U-Net call instead of the chunk's s calls"),
 ]  # fmt: skip
 
 

@@ -92,13 +92,10 @@ class SDPModel(DiffusionModel):
         the call as a CUDA graph; elsewhere that mode falls back to "default"."""
         if not compiled:
             return self.stream_step
-        cuda_graphs = device.type == "cuda" and self.config.compile_mode == "reduce-overhead"
+        mode = self.compile_mode(device)
         if self._compiled_stream is None:
-            mode = self.config.compile_mode
-            if mode == "reduce-overhead" and not cuda_graphs:
-                mode = "default"
             self._compiled_stream = torch.compile(self.stream_step, mode=mode, fullgraph=True, dynamic=False)
-        if not cuda_graphs:
+        if mode != "reduce-overhead":
             return self._compiled_stream
 
         def replay(*args):
@@ -107,6 +104,11 @@ class SDPModel(DiffusionModel):
             return tuple(out.clone() for out in self._compiled_stream(*args))
 
         return replay
+
+    def compile_mode(self, device: torch.device) -> str:
+        """`compile_mode`, except that "reduce-overhead" (CUDA graphs) falls back to "default" off CUDA."""
+        mode = self.config.compile_mode
+        return "default" if mode == "reduce-overhead" and device.type != "cuda" else mode
 
     def conditional_sample(
         self, batch_size: int, global_cond: Tensor, generator: torch.Generator | None = None

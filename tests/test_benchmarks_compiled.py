@@ -5,8 +5,11 @@ import json
 
 import pytest
 import torch
+from sdp_test_utils import observation, tiny_config
 
 from lerobot_sdp.benchmarks import cli, compiled
+from lerobot_sdp.benchmarks.latency_measure import Clock
+from lerobot_sdp.modeling_sdp import SDPPolicy
 
 
 def test_quick_run_reports_eager_compiled_and_the_floor(tmp_path):
@@ -22,7 +25,41 @@ def test_quick_run_reports_eager_compiled_and_the_floor(tmp_path):
         result["sdp_eager"]["nfe_per_chunk"] == 2 and result["dp_eager"]["nfe_per_chunk"] == 4
     )  # DDIM4, h=2
     assert result["sdp_compiled_max_abs_action_diff"] < 1e-4
+    assert result["sdp_unet_call_ms"]["eager"] > 0 and result["sdp_unet_call_ms"]["compiled"] > 0
+    assert set(result["sdp_bookkeeping_fraction_of_unet_call"]) == {"eager", "compiled"}
     bandwidth = report["memory_bandwidth_gb_s"] * 1e9
     assert report["bandwidth_floor_per_nfe_ms"] == pytest.approx(result["unet_bytes"] / bandwidth * 1000)
     with pytest.raises(SystemExit, match="exists"):
         cli.main(["compiled", "--quick", "--output_dir", str(tmp_path)])
+
+
+def test_unet_alone_runs_a_chunks_calls_on_the_streaming_inputs():
+    """The U-Net timed alone gets what a streaming call gives it: the buffer's sample (then its own
+    output) and the plan's own timesteps tensors in order (so the eager step-embedding cache serves it
+    as it serves the stream), s calls per timed chunk after one warm-up chunk."""
+    config = tiny_config()
+    policy = SDPPolicy(config).eval()
+    obs = observation(config, batch_size=1, seed=0)
+    with torch.inference_mode():
+        policy.select_action(obs)
+        seen = []
+        policy._sampling_model().unet.register_forward_hook(lambda m, args, out: seen.append((*args, out)))
+        ms = compiled.unet_call_ms(policy, obs, Clock(torch.device("cpu")), repeats=3, compile_mode=None)
+    plan = policy._buffer.plan(torch.device("cpu"), 1)
+    assert ms > 0
+    assert len(seen) == 4 * len(plan) == 4 * config.geometry.steps_per_call
+    for i, (sample, timesteps, _) in enumerate(seen):
+        assert timesteps is plan[i % len(plan)].timesteps
+        previous_output = seen[i - 1][2]
+        assert sample is (policy._buffer.sample if i % len(plan) == 0 else previous_output)
+
+
+def test_bookkeeping_is_chunk_time_less_s_unet_calls():
+    """SDP h = 2 with N = 10 makes s = 5 calls per chunk: a 12 ms eager chunk whose U-Net call takes
+    2 ms alone spends 2 ms, one call, on bookkeeping; a 5.5 ms compiled chunk of 1 ms calls, half one."""
+    policies = {name: SDPPolicy(tiny_config()) for name in compiled.NAMES}
+    times = {"sdp_eager": [0.012], "sdp_compiled": [0.0055], "dp_eager": [0.02], "dp_compiled": [0.02]}
+    actions = {"sdp_eager": [torch.zeros(1, 2)], "sdp_compiled": [torch.ones(1, 2)]}
+    out = compiled.summarise(policies, times, actions, {"eager": 2.0, "compiled": 1.0})
+    assert out["sdp_bookkeeping_fraction_of_unet_call"] == pytest.approx({"eager": 1.0, "compiled": 0.5})
+    assert out["sdp_compiled_max_abs_action_diff"] == 1.0

@@ -8,7 +8,10 @@ which are discarded; the steady cycles alternate between the four (and reverse t
 cycle), so a shared machine disturbs all alike. Each cycle times the `select_action` call that samples
 a chunk. Compiled code cannot carry forward hooks, so the time per denoiser call (NFE) here is the
 chunk time divided by the NFEs per chunk (N/h for SDP, N for DP): an upper bound that includes the
-bookkeeping (which `lerobot-sdp-bench latency` measures apart, eagerly, with hooks).
+bookkeeping. SDP's bookkeeping is then measured against its own U-Net: a chunk's s U-Net calls alone,
+chained and on the streaming call's inputs (buffer sample, plan timesteps, observation conditioning),
+eager and compiled as one graph the way the streaming step is (same mode); bookkeeping = chunk time -
+the s calls' time, reported as a fraction of one call, eager and compiled.
 
 The floor: one denoiser call reads every U-Net weight at least once, so it cannot take less than
 (U-Net parameter bytes) / (memory bandwidth). The bandwidth is measured here, as the copy rate of a
@@ -63,6 +66,42 @@ def unet_bytes(policy) -> int:
     return sum(p.numel() * p.element_size() for p in unet.parameters())
 
 
+def unet_loop(unet, sample: torch.Tensor, timesteps: list[torch.Tensor], global_cond: torch.Tensor):
+    """A streaming call's s U-Net calls and nothing else (no conditioning, sampler update or shift);
+    each output feeds the next call, so that compilation cannot drop one."""
+    for t in timesteps:
+        sample = unet(sample, t, global_cond=global_cond)
+    return sample
+
+
+def unet_call_ms(policy, observation: dict, clock: Clock, repeats: int, compile_mode: str | None) -> float:
+    """One U-Net call of SDP's streaming step alone: ``unet_loop`` on the inputs a streaming call gives
+    the U-Net (buffer sample, the plan's timesteps, the observation conditioning), eager or compiled as
+    one graph in ``compile_mode`` as the streaming step is; ms per call, median over ``repeats``."""
+    model = policy._sampling_model()
+    loop = unet_loop
+    if compile_mode is not None:
+        loop = torch.compile(unet_loop, mode=compile_mode, fullgraph=True, dynamic=False)
+    sample = policy._buffer.sample
+    timesteps = [c.timesteps for c in policy._buffer.plan(sample.device, sample.shape[0])]
+    to = policy.config.n_obs_steps
+    history = {k: v.unsqueeze(1).expand(-1, to, *v.shape[1:]) for k, v in observation.items()}
+    global_cond = model._prepare_global_conditioning(history)
+
+    def run() -> None:
+        if compile_mode == "reduce-overhead":
+            torch.compiler.cudagraph_mark_step_begin()
+        loop(model.unet, sample, timesteps, global_cond)
+
+    run()  # compiles
+    times = []
+    for _ in range(repeats):
+        start = clock.now()
+        run()
+        times.append((clock.now() - start) / len(timesteps))
+    return statistics.median(times) * 1000
+
+
 def build(args: argparse.Namespace, batch_size: int) -> dict:
     case = Case(args.device, batch_size, args.sampler, args.n_chunks)
     args.compile = False
@@ -109,10 +148,18 @@ def run_batch(args: argparse.Namespace, batch_size: int, progress: tqdm) -> dict
         for step in range(args.steps):
             for name in NAMES if step % 2 else NAMES[::-1]:
                 cycle(name, record=True)
-    return summarise(policies, times, actions)
+        sdp, observation = policies["sdp_eager"], next(streams["sdp_eager"])
+        mode = sdp._sampling_model().compile_mode(device)
+        unet_ms = {
+            "eager": unet_call_ms(sdp, observation, clock, args.steps, None),
+            "compiled": unet_call_ms(sdp, observation, clock, args.steps, mode),
+        }
+    return summarise(policies, times, actions, unet_ms)
 
 
-def summarise(policies: dict, times: dict[str, list[float]], actions: dict[str, list[torch.Tensor]]) -> dict:
+def summarise(
+    policies: dict, times: dict[str, list[float]], actions: dict[str, list[torch.Tensor]], unet_ms: dict
+) -> dict:
     out = {}
     for name, policy in policies.items():
         chunk_ms = statistics.median(times[name]) * 1000
@@ -128,6 +175,11 @@ def summarise(policies: dict, times: dict[str, list[float]], actions: dict[str, 
     out["dp_compiled_speedup"] = out["dp_eager"]["chunk_ms_p50"] / out["dp_compiled"]["chunk_ms_p50"]
     out["sdp_compiled_max_abs_action_diff"] = float((eager - compiled).abs().max())
     out["unet_bytes"] = unet_bytes(policies["sdp_eager"])
+    out["sdp_unet_call_ms"] = unet_ms
+    out["sdp_bookkeeping_fraction_of_unet_call"] = {
+        mode: (out[f"sdp_{mode}"]["chunk_ms_p50"] - out[f"sdp_{mode}"]["nfe_per_chunk"] * ms) / ms
+        for mode, ms in unet_ms.items()
+    }
     return out
 
 
@@ -136,12 +188,14 @@ def markdown_table(report: dict) -> str:
     header = (
         "| obs | batch | sampler | h | SDP eager / compiled ms per chunk | speedup | DP eager / compiled ms "
         "| speedup | SDP compiled / DP compiled | per-NFE compiled SDP ms | floor ms | x floor "
-        "| max abs action diff |"
+        "| max abs action diff | SDP U-Net call eager / compiled ms "
+        "| SDP bookkeeping eager / compiled, % of a call |"
     )
     lines = [header, "|" + "---|" * (header.count("|") - 1)]
     s = report["settings"]
     for r in report["results"]:
         per_nfe = r["sdp_compiled"]["per_nfe_ms"]
+        bookkeeping = r["sdp_bookkeeping_fraction_of_unet_call"]
         lines.append(
             f"| {s['obs']} | {r['batch_size']} | {s['sampler']} | {s['n_chunks']} "
             f"| {r['sdp_eager']['chunk_ms_p50']:.1f} / {r['sdp_compiled']['chunk_ms_p50']:.1f} "
@@ -150,7 +204,9 @@ def markdown_table(report: dict) -> str:
             f"| {r['dp_compiled_speedup']:.2f}x "
             f"| {r['sdp_compiled']['chunk_ms_p50'] / r['dp_compiled']['chunk_ms_p50']:.3f} "
             f"| {per_nfe:.2f} | {floor_ms:.2f} | {per_nfe / floor_ms:.1f} "
-            f"| {r['sdp_compiled_max_abs_action_diff']:.1e} |"
+            f"| {r['sdp_compiled_max_abs_action_diff']:.1e} "
+            f"| {r['sdp_unet_call_ms']['eager']:.2f} / {r['sdp_unet_call_ms']['compiled']:.2f} "
+            f"| {100 * bookkeeping['eager']:.1f} / {100 * bookkeeping['compiled']:.1f} |"
         )
     return "\n".join(lines)
 
