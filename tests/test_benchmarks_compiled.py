@@ -26,6 +26,7 @@ def test_quick_run_reports_eager_compiled_and_the_floor(tmp_path):
     )  # DDIM4, h=2
     assert result["sdp_compiled_max_abs_action_diff"] < 1e-4
     assert result["sdp_unet_call_ms"]["eager"] > 0 and result["sdp_unet_call_ms"]["compiled"] > 0
+    assert result["sdp_bookkeeping_ms"]["eager"] > 0 and result["sdp_bookkeeping_ms"]["compiled"] > 0
     assert set(result["sdp_bookkeeping_fraction_of_unet_call"]) == {"eager", "compiled"}
     bandwidth = report["memory_bandwidth_gb_s"] * 1e9
     assert report["bandwidth_floor_per_nfe_ms"] == pytest.approx(result["unet_bytes"] / bandwidth * 1000)
@@ -54,12 +55,27 @@ def test_unet_alone_runs_a_chunks_calls_on_the_streaming_inputs():
         assert sample is (policy._buffer.sample if i % len(plan) == 0 else previous_output)
 
 
-def test_bookkeeping_is_chunk_time_less_s_unet_calls():
-    """SDP h = 2 with N = 10 makes s = 5 calls per chunk: a 12 ms eager chunk whose U-Net call takes
-    2 ms alone spends 2 ms, one call, on bookkeeping; a 5.5 ms compiled chunk of 1 ms calls, half one."""
-    policies = {name: SDPPolicy(tiny_config()) for name in compiled.NAMES}
-    times = {"sdp_eager": [0.012], "sdp_compiled": [0.0055], "dp_eager": [0.02], "dp_compiled": [0.02]}
-    actions = {"sdp_eager": [torch.zeros(1, 2)], "sdp_compiled": [torch.ones(1, 2)]}
-    out = compiled.summarise(policies, times, actions, {"eager": 2.0, "compiled": 1.0})
-    assert out["sdp_bookkeeping_fraction_of_unet_call"] == pytest.approx({"eager": 1.0, "compiled": 0.5})
-    assert out["sdp_compiled_max_abs_action_diff"] == 1.0
+def test_bookkeeping_runs_the_stream_with_the_stand_in_then_restores_the_unet():
+    """Inside `stand_in_unet` a chunk calls the stand-in s times and never the U-Net; afterwards the
+    U-Net is back and the stream restarts (no buffer sampled by the stand-in survives)."""
+    config = tiny_config()
+    policy = SDPPolicy(config).eval()
+    obs = observation(config, batch_size=1, seed=0)
+    unet = policy._sampling_model().unet
+    unet_calls = []
+    unet.register_forward_hook(lambda *a: unet_calls.append(1))
+    with torch.inference_mode():
+        policy.select_action(obs)
+        assert len(unet_calls) > 0
+        unet_calls.clear()
+        with compiled.stand_in_unet(policy):
+            stand_in = policy._sampling_model().unet
+            assert isinstance(stand_in, compiled.StandInUnet)
+            stand_in_calls = []
+            stand_in.register_forward_hook(lambda *a: stand_in_calls.append(1))
+            for _ in range(2 * config.n_action_steps):  # two chunks of s calls (a zero primer calls none)
+                policy.select_action(obs)
+        assert unet_calls == []
+        assert len(stand_in_calls) == 2 * config.geometry.steps_per_call
+        assert policy._sampling_model().unet is unet
+        assert policy._buffer.sample is None
