@@ -7,6 +7,7 @@ finished training run is reused, an interrupted one resumes from its last checkp
 
 import json
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -29,6 +30,15 @@ THREAD_DEFAULTS = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 def subprocess_env() -> dict[str, str]:
     return THREAD_DEFAULTS | dict(os.environ)
+
+
+def let_sigint_reach_children() -> None:
+    """A process that a shell starts in the background (`cmd &`, nohup) inherits SIGINT ignored, and so
+    would its children: Python then installs no KeyboardInterrupt, and a LeRobot client stopped with
+    SIGINT (as Ctrl-C stops it) runs on. Catching SIGINT here gives children the default disposition
+    back (exec resets caught signals), so Ctrl-C and our SIGINT stop them. Call from the main thread."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def run_logged(cmd: list[str], log: Path, echo: bool = True) -> None:

@@ -16,6 +16,8 @@ import pytest
 import torch
 from sdp_test_utils import PUSHT_KEYPOINT_STATS, history, save_tiny_policy, tiny_config
 
+from lerobot_sdp.lerobot_cli import let_sigint_reach_children
+
 TB = 4  # tiny_config's n_action_steps
 
 
@@ -259,6 +261,7 @@ def wait_for(condition, timeout: float = 30.0) -> None:
 def client_process(tmp_path, address: str, policy_dir, stats_path):
     """LeRobot's robot_client CLI with a simulated robot, as a user runs it (it loads the plugin itself).
     Each RobotClient in its own process: clients are told apart by their connection."""
+    let_sigint_reach_children()  # stopped with SIGINT below, also when pytest runs in the background
     cmd = [
         sys.executable,
         "-m",

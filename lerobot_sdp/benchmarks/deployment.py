@@ -30,7 +30,7 @@ from pathlib import Path
 
 from lerobot.configs.policies import PreTrainedConfig
 
-from ..lerobot_cli import lerobot_bin, subprocess_env
+from ..lerobot_cli import lerobot_bin, let_sigint_reach_children, subprocess_env
 from ..processor_sdp import lacks_split_state_step
 
 ENGINES = ("sync", "rtc", "async")
@@ -264,6 +264,7 @@ def run(args: argparse.Namespace) -> list[dict]:
     if problems:
         raise SystemExit("\n".join(problems))
     args.output_dir.mkdir(parents=True, exist_ok=True)
+    let_sigint_reach_children()  # the clients are stopped with SIGINT
     rows = []
     for name, path in policies.items():
         for engine in args.engines:
