@@ -185,7 +185,7 @@ def run_batch(args: argparse.Namespace, batch_size: int, progress: tqdm) -> dict
             "eager": unet_call_ms(sdp, observation, clock, args.steps, None),
             "compiled": unet_call_ms(sdp, observation, clock, args.steps, sdp.model.compile_mode(device)),
         }
-        out = summarise(policies, times, actions, unet_ms)
+        out = summarise(policies, times, actions)
         bookkeeping = {}
         for mode in ("eager", "compiled"):
             name, chunks = f"sdp_{mode}", []
@@ -200,14 +200,13 @@ def run_batch(args: argparse.Namespace, batch_size: int, progress: tqdm) -> dict
 
 def bookkeeping_report(bookkeeping_ms: dict, unet_ms: dict) -> dict:
     return {
+        "sdp_unet_call_ms": unet_ms,
         "sdp_bookkeeping_ms": bookkeeping_ms,
         "sdp_bookkeeping_fraction_of_unet_call": {m: bookkeeping_ms[m] / unet_ms[m] for m in bookkeeping_ms},
     }
 
 
-def summarise(
-    policies: dict, times: dict[str, list[float]], actions: dict[str, list[torch.Tensor]], unet_ms: dict
-) -> dict:
+def summarise(policies: dict, times: dict[str, list[float]], actions: dict[str, list[torch.Tensor]]) -> dict:
     out = {}
     for name, policy in policies.items():
         chunk_ms = statistics.median(times[name]) * 1000
@@ -223,7 +222,6 @@ def summarise(
     out["dp_compiled_speedup"] = out["dp_eager"]["chunk_ms_p50"] / out["dp_compiled"]["chunk_ms_p50"]
     out["sdp_compiled_max_abs_action_diff"] = float((eager - compiled).abs().max())
     out["unet_bytes"] = unet_bytes(policies["sdp_eager"])
-    out["sdp_unet_call_ms"] = unet_ms
     return out
 
 
