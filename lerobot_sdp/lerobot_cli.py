@@ -68,9 +68,9 @@ def trained_steps(train_dir: Path) -> int:
     return json.loads(state.read_text())["step"] if state.exists() else 0
 
 
-def train(train_dir: Path, args: list[str], steps: int, log: Path) -> Path:
+def train(train_dir: Path, args: list[str], steps: int, log: Path, echo: bool = True) -> Path:
     """`lerobot-train ARGS --steps=STEPS --output_dir=TRAIN_DIR`, resumed or skipped when a checkpoint
-    exists. Returns the final pretrained_model directory."""
+    exists. Returns the final pretrained_model directory. `echo=False`: the output goes to `log` only."""
     model_dir = last_checkpoint(train_dir) / "pretrained_model"
     done = trained_steps(train_dir)
     if done >= steps:
@@ -87,7 +87,7 @@ def train(train_dir: Path, args: list[str], steps: int, log: Path) -> Path:
         raise CLIError(f"{train_dir} exists but holds no checkpoint: move it away or delete it, then rerun.")
     else:
         cmd = [lerobot_bin("lerobot-train"), *args, f"--steps={steps}", f"--output_dir={train_dir}"]
-    run_logged(cmd, log)
+    run_logged(cmd, log, echo)
     return model_dir
 
 
@@ -96,13 +96,13 @@ def eval_info(eval_dir: Path) -> Path:
     return eval_dir / "eval_info.json"
 
 
-def evaluate(model_dir: Path, eval_dir: Path, args: list[str], log: Path) -> dict:
+def evaluate(model_dir: Path, eval_dir: Path, args: list[str], log: Path, echo: bool = True) -> dict:
     """`lerobot-eval --policy.path=MODEL_DIR ARGS --output_dir=EVAL_DIR`, skipped when its
     eval_info.json exists. Returns the overall metrics."""
     info = eval_info(eval_dir)
     if not info.exists():
         cmd = [lerobot_bin("lerobot-eval"), f"--policy.path={model_dir}", *args, f"--output_dir={eval_dir}"]
-        run_logged(cmd, log)
+        run_logged(cmd, log, echo)
     return json.loads(info.read_text())["overall"]
 
 

@@ -1,6 +1,8 @@
 """The quality benchmark's plumbing: two training steps, two episodes, through the real CLIs."""
 
 import json
+import threading
+import time
 
 import pytest
 from sdp_test_utils import make_tiny_pusht_dataset
@@ -14,6 +16,7 @@ from lerobot_sdp.benchmarks.quality import (
     comparison_runs,
     markdown,
     resolve_budget,
+    run_in_parallel,
 )
 
 
@@ -86,6 +89,31 @@ def test_ablations_share_one_model_for_the_primers():
         assert run.model_run == "scheme_cw80_const20" and run.eval_overrides == {"action_primer": primer}
     assert "--policy.noise_schemes.independent=0.67" in runs["scheme_ind67_lin33"].policy_args
     assert all(r.steps == BUDGETS["cpu"].ablation_steps for r in runs.values())
+
+
+def test_parallel_runs_overlap_and_primers_wait_for_their_model():
+    runs = ablation_runs(BUDGETS["tiny"], "cpu")
+    lock, active, events = threading.Lock(), [0], []
+
+    def fake_execute(run):
+        with lock:
+            active[0] += 1
+            events.append(("start", run.name, active[0]))
+        time.sleep(0.05)
+        with lock:
+            active[0] -= 1
+            events.append(("end", run.name, active[0]))
+        return {"run": run.name}
+
+    rows = list(run_in_parallel(runs, fake_execute, jobs=3))
+    assert sorted(r["run"] for r in rows) == sorted(r.name for r in runs)
+    assert max(n for kind, _, n in events if kind == "start") == 3  # three at once, never more
+    order = [(kind, name.split("_")[0]) for kind, name, _ in events]
+    last_training_end = max(i for i, e in enumerate(order) if e == ("end", "scheme"))
+    first_primer_start = min(i for i, e in enumerate(order) if e == ("start", "primer"))
+    assert first_primer_start > last_training_end  # the primers evaluate a finished model
+    with pytest.raises(SystemExit, match="--jobs must be at least 1"):
+        cli.main(["quality", "--budget", "tiny", "--jobs", "0", "--output_dir", "unused"])
 
 
 def test_comparison_trains_every_policy_the_same_way():

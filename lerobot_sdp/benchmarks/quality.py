@@ -13,6 +13,8 @@ import argparse
 import json
 import math
 import time
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -170,16 +172,17 @@ def execute(
     budget: Budget,
     device: str,
     curve_every: int | None = None,
+    echo: bool = True,
 ) -> dict:
     """Train (or resume, or reuse) and evaluate one run, and with `curve_every` every K-step
-    checkpoint of it on the same episodes; returns its row."""
+    checkpoint of it on the same episodes; returns its row. `echo=False` leaves the CLIs' output
+    in the run's log files only (runs in parallel)."""
     model_root = output_dir / "runs" / run.model_run
     timing_file = model_root / "timing.json"
     timing = json.loads(timing_file.read_text()) if timing_file.exists() else {"train_wall_s": 0.0}
     t0 = time.monotonic()
-    model_dir = train(
-        model_root / "train", [*data_args, *common, *run.policy_args], run.steps, model_root / "train.log"
-    )
+    train_args = [*data_args, *common, *run.policy_args]
+    model_dir = train(model_root / "train", train_args, run.steps, model_root / "train.log", echo)
     if not run.trains_as:
         timing["train_wall_s"] += time.monotonic() - t0
         timing_file.write_text(json.dumps(timing))
@@ -188,23 +191,25 @@ def execute(
         pusht_eval_args(OBS_TYPE, budget.n_episodes, EVAL_SEED, device, budget.episode_length) + overrides
     )
     here = run_dir(output_dir, run)
-    evaluate(model_dir, here / "eval", eval_args, here / "eval.log")
+    evaluate(model_dir, here / "eval", eval_args, here / "eval.log", echo)
     cost = stream_cost(model_dir, overrides=run.eval_overrides)
     row = {"run": run.name, **episode_stats(here / "eval"), "steps": run.steps, **cost}
     row["train_wall_s"] = round(timing["train_wall_s"], 1)
     if curve_every:
-        row["curve"] = curve(model_root, here, eval_args, curve_every, run.steps)
+        row["curve"] = curve(model_root, here, eval_args, curve_every, run.steps, echo)
     return row
 
 
-def curve(model_root: Path, here: Path, eval_args: list[str], every: int, final_step: int) -> list[dict]:
+def curve(
+    model_root: Path, here: Path, eval_args: list[str], every: int, final_step: int, echo: bool = True
+) -> list[dict]:
     """Every saved K-step checkpoint evaluated on the run's episodes (the last is the run's eval)."""
     marks = step_logs(model_root / "train.log", final_step)
     points = []
     for step in checkpoint_steps(model_root / "train", every):
         eval_dir = here / "eval" if step == final_step else here / "curve" / f"{step:06d}"
         model_dir = model_root / "train" / "checkpoints" / f"{step:06d}" / "pretrained_model"
-        evaluate(model_dir, eval_dir, eval_args, eval_dir.parent / f"{eval_dir.name}.log")
+        evaluate(model_dir, eval_dir, eval_args, eval_dir.parent / f"{eval_dir.name}.log", echo)
         wall = wall_time_at(marks, step)
         points.append(
             {"step": step, "train_wall_s": round(wall, 1) if wall else 0.0, **episode_stats(eval_dir)}
@@ -303,6 +308,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="then evaluate the comparison's final models at several samplers (cost.png)",
     )
     parser.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        help="train and evaluate this many runs at once, their output in their log files only (a GPU "
+        "with many CPU cores: each run's DataLoader workers and torch threads count against the cores)",
+    )
+    parser.add_argument(
         "--curve_every",
         type=int,
         default=None,
@@ -322,6 +334,8 @@ def resolve_budget(args: argparse.Namespace) -> tuple[str, Budget]:
 
 def run(args: argparse.Namespace) -> dict:
     budget_name, budget = resolve_budget(args)
+    if args.jobs < 1:
+        raise SystemExit(f"--jobs must be at least 1, got {args.jobs}.")
     output_dir = args.output_dir or Path(f"outputs/quality_{budget_name}")
     runs = {
         "comparison": comparison_runs,
@@ -356,9 +370,15 @@ def run(args: argparse.Namespace) -> dict:
     ]
     results_file = output_dir / "results.json"
     rows = json.loads(results_file.read_text())["rows"] if results_file.exists() else {}
-    for r in selected:
-        rows[r.name] = execute(r, output_dir, data_args, common, budget, args.device, args.curve_every)
-        report = {"budget": budget_name, "settings": asdict(budget), "eval_seed": EVAL_SEED, "rows": rows}
+    report = {"budget": budget_name, "settings": asdict(budget), "eval_seed": EVAL_SEED, "rows": rows}
+
+    def execute_run(r: Run) -> dict:
+        return execute(
+            r, output_dir, data_args, common, budget, args.device, args.curve_every, echo=args.jobs == 1
+        )
+
+    for row in run_in_parallel(selected, execute_run, args.jobs):
+        rows[row["run"]] = row
         results_file.write_text(json.dumps(report, indent=2))
         (output_dir / "results.md").write_text(markdown(rows, budget_name, budget))
         if args.curve_every:
@@ -376,6 +396,14 @@ def run(args: argparse.Namespace) -> dict:
         cost_sweep.plot(report["sweep"], output_dir / "cost.png", f"Push-T keypoints, budget {budget_name}")
     print((output_dir / "results.md").read_text())
     return report
+
+
+def run_in_parallel(runs: list[Run], execute_run: Callable[[Run], dict], jobs: int) -> Iterator[dict]:
+    """Each run's row as it finishes, at most `jobs` runs at once. A run that evaluates another's
+    model (`trains_as`) starts only once every training run is done, so no model is trained twice."""
+    with ThreadPoolExecutor(max_workers=jobs) as pool:
+        for stage in ([r for r in runs if not r.trains_as], [r for r in runs if r.trains_as]):
+            yield from (f.result() for f in as_completed([pool.submit(execute_run, r) for r in stage]))
 
 
 def run_sweep(selected: list[Run], output_dir: Path, budget: Budget, device: str) -> dict[str, list[dict]]:
