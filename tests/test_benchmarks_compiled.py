@@ -34,11 +34,12 @@ def test_quick_run_reports_eager_compiled_and_the_floor(tmp_path):
         cli.main(["compiled", "--quick", "--output_dir", str(tmp_path)])
 
 
-def test_unet_alone_runs_a_chunks_calls_on_the_streaming_inputs():
+@pytest.mark.parametrize("image", [False, True])
+def test_unet_alone_runs_a_chunks_calls_on_the_streaming_inputs(image):
     """The U-Net timed alone gets what a streaming call gives it: the buffer's sample (then its own
     output) and the plan's own timesteps tensors in order (so the eager step-embedding cache serves it
-    as it serves the stream), s calls per timed chunk after one warm-up chunk."""
-    config = tiny_config()
+    as it serves the stream), s calls per timed chunk after one warm-up chunk; with a camera too."""
+    config = tiny_config(image=image)
     policy = SDPPolicy(config).eval()
     obs = observation(config, batch_size=1, seed=0)
     with torch.inference_mode():

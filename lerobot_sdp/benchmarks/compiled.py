@@ -90,7 +90,10 @@ def unet_call_ms(policy, observation: dict, clock: Clock, repeats: int, compile_
     sample = policy._buffer.sample
     timesteps = [c.timesteps for c in policy._buffer.plan(sample.device, sample.shape[0])]
     to = policy.config.n_obs_steps
-    history = {k: v.unsqueeze(1).expand(-1, to, *v.shape[1:]) for k, v in observation.items()}
+    # the cameras stacked as `select_action` stacks them before they join the history
+    history = {
+        k: v.unsqueeze(1).expand(-1, to, *v.shape[1:]) for k, v in policy._stack_cameras(observation).items()
+    }
     global_cond = model._prepare_global_conditioning(history)
 
     def run() -> None:
