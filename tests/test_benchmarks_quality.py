@@ -8,7 +8,13 @@ import pytest
 from sdp_test_utils import make_tiny_pusht_dataset
 
 from lerobot_sdp.benchmarks import cli
-from lerobot_sdp.benchmarks.curves import checkpoint_steps, episode_stats, step_logs, wall_time_at
+from lerobot_sdp.benchmarks.curves import (
+    checkpoint_steps,
+    episode_stats,
+    step_logs,
+    train_wall_s,
+    wall_time_at,
+)
 from lerobot_sdp.benchmarks.quality import (
     BUDGETS,
     PAPER_SCHEMES,
@@ -177,6 +183,17 @@ def test_wall_time_skips_the_stop_between_sessions(tmp_path):
     # 0.1 s per step everywhere it was measured; steps 0-100 and 200-300 charged at that rate
     assert wall_time_at(marks, 400) == pytest.approx(40.0)
     assert wall_time_at(marks, 200) == pytest.approx(20.0)
+
+
+def test_a_runs_wall_time_leaves_out_the_pause_its_clock_counted(tmp_path):
+    """The run's row reads its time from the step logs, as a curve point does: the hour stopped after
+    step 200 is not charged, though the wall clock (3,640 s) counted it; no step logs, the clock."""
+    log = tmp_path / "train.log"
+    lines = [f"INFO 2026-11-23 10:00:{10 * k:02d} ot_train.py:641 step:{100 * k} smpl:1K" for k in (1, 2)]
+    lines += [f"INFO 2026-11-23 11:00:{10 * k:02d} ot_train.py:641 step:{100 * k} smpl:1K" for k in (3, 4)]
+    log.write_text("\n".join(lines) + "\n")
+    assert train_wall_s(log, 400, clock_s=3640.0) == pytest.approx(40.0)
+    assert train_wall_s(tmp_path / "missing.log", 400, clock_s=3640.0) == 3640.0
 
 
 def test_exact_steps_come_from_the_progress_bar_after_a_resume(tmp_path):

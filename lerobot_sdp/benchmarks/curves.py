@@ -58,6 +58,14 @@ def wall_time_at(marks: list[tuple[datetime, int]], step: int) -> float | None:
     return sum(d for *_, d in counted) + max(0, step - covered) * per_step
 
 
+def train_wall_s(train_log: Path, steps: int, clock_s: float) -> float:
+    """A run's training seconds: from its step logs as for a curve point, so that a pause or a stop
+    between sessions never counts; the wall clock `clock_s` (which counts them) only for a run too
+    short to log two steps."""
+    logged = wall_time_at(step_logs(train_log, steps), steps)
+    return clock_s if logged is None else logged
+
+
 def checkpoint_steps(train_dir: Path, every: int) -> list[int]:
     """Saved checkpoints whose step is a multiple of `every`, ascending."""
     root = train_dir / "checkpoints"

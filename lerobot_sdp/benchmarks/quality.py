@@ -22,7 +22,7 @@ from ..lerobot_cli import evaluate, last_checkpoint, pusht_eval_args, train, tra
 from ..pusht.data import keypoints_dataset_args
 from ..pusht.job import EVAL_SEED, OBS_TYPE
 from . import cost_sweep
-from .curves import checkpoint_steps, episode_stats, plot, step_logs, wall_time_at
+from .curves import checkpoint_steps, episode_stats, plot, step_logs, train_wall_s, wall_time_at
 from .stream_cost import stream_cost
 
 DP_HORIZON = 16  # LeRobot's reference Push-T Diffusion Policy (lerobot/diffusion_pusht)
@@ -194,7 +194,7 @@ def execute(
     evaluate(model_dir, here / "eval", eval_args, here / "eval.log", echo)
     cost = stream_cost(model_dir, overrides=run.eval_overrides)
     row = {"run": run.name, **episode_stats(here / "eval"), "steps": run.steps, **cost}
-    row["train_wall_s"] = round(timing["train_wall_s"], 1)
+    row["train_wall_s"] = round(train_wall_s(model_root / "train.log", run.steps, timing["train_wall_s"]), 1)
     if curve_every:
         row["curve"] = curve(model_root, here, eval_args, curve_every, run.steps, echo)
     return row
