@@ -20,6 +20,7 @@ from lerobot_sdp.benchmarks.quality import (
     PAPER_SCHEMES,
     ablation_runs,
     comparison_runs,
+    horizon_control_runs,
     markdown,
     resolve_budget,
     run_in_parallel,
@@ -80,6 +81,9 @@ def test_tiny_comparison_runs_resumes_and_reports(tmp_path, capsys):
         assert "Warm start from the Diffusion Policy checkpoint" in log and "copied" in log
     assert "Warm start" not in (tmp_path / "q" / "runs" / "scratch_film_short" / "train.log").read_text()
     assert "### Warm start from the trained DP" in (tmp_path / "q" / "results.md").read_text()
+    # another run set in the same folder keeps the comparison's sweep
+    assert json.loads((tmp_path / "q" / "results.json").read_text())["sweep"] == sweep
+    assert "### Quality against cost" in (tmp_path / "q" / "results.md").read_text()
 
 
 def test_warm_start_runs_need_the_trained_dp(tmp_path):
@@ -143,6 +147,25 @@ def test_comparison_trains_every_policy_the_same_way():
     ]
     assert shared[0] == shared[1] == shared[2]
     assert len({r.steps for r in runs}) == 1
+
+
+def test_horizon_controls_are_dp_as_far_ahead_as_sdp_and_lerobot_accepts_them():
+    from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
+
+    budget = BUDGETS["cpu"]
+    dp = comparison_runs(budget, "cpu")[0]
+    runs = horizon_control_runs(budget, "cpu")
+    # SDP h = 4 predicts 1 past + 32 future actions, h = 2 1 + 16; LeRobot wants multiples of 8 here
+    assert [r.name for r in runs] == ["dp_horizon40", "dp_horizon24"]
+    for run, horizon in zip(runs, (40, 24), strict=True):
+        assert set(run.policy_args) ^ set(dp.policy_args) == {
+            "--policy.horizon=16",
+            f"--policy.horizon={horizon}",
+        }
+        assert run.steps == dp.steps
+        DiffusionConfig(horizon=horizon, down_dims=budget.down_dims)  # no ValueError
+    with pytest.raises(ValueError, match="multiple of the downsampling factor"):
+        DiffusionConfig(horizon=36, down_dims=budget.down_dims)  # SDP h = 4's own horizon
 
 
 def test_markdown_puts_the_papers_numbers_beside_ours():

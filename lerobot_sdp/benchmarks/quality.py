@@ -18,6 +18,7 @@ from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
+from ..geometry import ChunkGeometry
 from ..lerobot_cli import evaluate, last_checkpoint, pusht_eval_args, train, trained_steps
 from ..pusht.data import keypoints_dataset_args
 from ..pusht.job import EVAL_SEED, OBS_TYPE
@@ -86,7 +87,7 @@ class Run:
         return self.trains_as or self.name
 
 
-def policy_args(budget: Budget, policy: str, device: str) -> list[str]:
+def policy_args(budget: Budget, policy: str, device: str, dp_horizon: int = DP_HORIZON) -> list[str]:
     common = [
         f"--policy.type={policy}",
         "--policy.n_obs_steps=2",
@@ -103,7 +104,7 @@ def policy_args(budget: Budget, policy: str, device: str) -> list[str]:
         "--policy.push_to_hub=false",
     ]
     if policy == "diffusion":
-        return [*common, f"--policy.horizon={DP_HORIZON}", "--policy.pretrained_backbone_weights=null"]
+        return [*common, f"--policy.horizon={dp_horizon}", "--policy.pretrained_backbone_weights=null"]
     return [*common, "--policy.use_ema=false"]
 
 
@@ -128,6 +129,20 @@ def comparison_runs(budget: Budget, device: str) -> list[Run]:
         Run("sdp_h2", sdp_args(budget, device, 2), budget.steps),
         Run("sdp_h4", sdp_args(budget, device, 4), budget.steps),
     ]
+
+
+def horizon_control_runs(budget: Budget, device: str) -> list[Run]:
+    """LeRobot's Diffusion Policy predicting as far ahead as SDP h = 4 and h = 2 do: is SDP's lead its
+    streaming or its longer horizon? LeRobot wants DP's horizon to be a multiple of 2 ** len(down_dims),
+    so each is the smallest such horizon that holds SDP's past slots and h chunks. DP keeps LeRobot's
+    `drop_n_last_frames` (7): like SDP, it trains on every executed frame, the slots past an episode's
+    end copy-padded."""
+    runs = []
+    for h in (4, 2):
+        geometry = ChunkGeometry(2, 8, h, budget.num_inference_steps, downsampling=2 ** len(budget.down_dims))
+        name = f"dp_horizon{geometry.horizon}"
+        runs.append(Run(name, policy_args(budget, "diffusion", device, geometry.horizon), budget.steps))
+    return runs
 
 
 def ablation_runs(budget: Budget, device: str) -> list[Run]:
@@ -246,6 +261,7 @@ def markdown(rows: dict[str, dict], budget_name: str, budget: Budget) -> str:
 
     out = [f"Budget `{budget_name}`: {asdict(budget)}", "", "### Comparison", "", head, sep]
     out += [line(n, rows[n]) for n in ("dp", "sdp_h2", "sdp_h4") if n in rows]
+    out += [line(n, rows[n]) for n in rows if n.startswith("dp_horizon")]
     warm = [n for n in rows if n.startswith(("warm_", "scratch_"))]
     if warm:
         out += ["", "### Warm start from the trained DP (SDP h = 2, a tenth of DP's steps)", "", head, sep]
@@ -282,9 +298,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--budget", choices=list(BUDGETS), default="cpu")
     parser.add_argument(
         "--runs",
-        choices=["comparison", "ablations", "warmstart", "all"],
+        choices=["comparison", "horizon_control", "ablations", "warmstart", "all"],
         default="comparison",
-        help="warmstart: SDP fine-tuned from the comparison's trained DP (run the comparison first)",
+        help="horizon_control: DP at SDP h = 4's and h = 2's horizons; "
+        "warmstart: SDP fine-tuned from the comparison's trained DP (run the comparison first)",
     )
     parser.add_argument("--output_dir", type=Path, default=None, help="default: outputs/quality_<budget>")
     parser.add_argument(
@@ -339,6 +356,7 @@ def run(args: argparse.Namespace) -> dict:
     output_dir = args.output_dir or Path(f"outputs/quality_{budget_name}")
     runs = {
         "comparison": comparison_runs,
+        "horizon_control": horizon_control_runs,
         "ablations": ablation_runs,
         "warmstart": lambda b, d: warmstart_runs(b, d, dp_model(output_dir)),
     }
@@ -369,8 +387,11 @@ def run(args: argparse.Namespace) -> dict:
         "--log_freq=200",
     ]
     results_file = output_dir / "results.json"
-    rows = json.loads(results_file.read_text())["rows"] if results_file.exists() else {}
+    # rows and sweeps of other run sets in this folder stay in the report
+    previous = json.loads(results_file.read_text()) if results_file.exists() else {}
+    rows = previous.get("rows", {})
     report = {"budget": budget_name, "settings": asdict(budget), "eval_seed": EVAL_SEED, "rows": rows}
+    report |= {"sweep": previous["sweep"]} if "sweep" in previous else {}
 
     def execute_run(r: Run) -> dict:
         return execute(
@@ -379,8 +400,7 @@ def run(args: argparse.Namespace) -> dict:
 
     for row in run_in_parallel(selected, execute_run, args.jobs):
         rows[row["run"]] = row
-        results_file.write_text(json.dumps(report, indent=2))
-        (output_dir / "results.md").write_text(markdown(rows, budget_name, budget))
+        write_report(report, output_dir, budget)
         if args.curve_every:
             plot(
                 rows,
@@ -389,13 +409,19 @@ def run(args: argparse.Namespace) -> dict:
             )
         print("\n".join(status(selected, output_dir)), flush=True)
     if args.sweep:
-        report["sweep"] = run_sweep(selected, output_dir, budget, args.device)
-        results_file.write_text(json.dumps(report, indent=2))
-        with (output_dir / "results.md").open("a") as f:
-            f.write(sweep_markdown(report["sweep"]))
+        report["sweep"] = report.get("sweep", {}) | run_sweep(selected, output_dir, budget, args.device)
+        write_report(report, output_dir, budget)
         cost_sweep.plot(report["sweep"], output_dir / "cost.png", f"Push-T keypoints, budget {budget_name}")
     print((output_dir / "results.md").read_text())
     return report
+
+
+def write_report(report: dict, output_dir: Path, budget: Budget) -> None:
+    """OUTPUT_DIR/results.json and its tables, results.md."""
+    (output_dir / "results.json").write_text(json.dumps(report, indent=2))
+    text = markdown(report["rows"], report["budget"], budget)
+    text += sweep_markdown(report["sweep"]) if "sweep" in report else ""
+    (output_dir / "results.md").write_text(text)
 
 
 def run_in_parallel(runs: list[Run], execute_run: Callable[[Run], dict], jobs: int) -> Iterator[dict]:
