@@ -74,8 +74,8 @@ def test_resumed_session_keeps_reused_stage_times_and_adds_resumed_ones(tmp_path
 def test_sdp_geometry_of_the_main_jobs_config():
     config = json.loads((REPO / "configs" / "pusht_state_cpu.json").read_text())
     line = sdp_geometry(config, "cpu")
-    assert line.startswith("SDP geometry: horizon=20 (1 past + 2 chunks x 8 + 3 padding)")
-    assert "50 denoiser calls per chunk" in line
+    assert line.startswith("SDP geometry: horizon=36 (1 past + 4 chunks x 8 + 3 padding)")
+    assert "25 denoiser calls per chunk" in line
     assert sdp_geometry({"policy": {"type": "diffusion"}}, "cpu") is None
 
 
@@ -116,6 +116,7 @@ def test_main_job_then_resume_keeps_the_first_runs_timings(tmp_path, monkeypatch
         "down_dims": [16, 32],
         "diffusion_step_embed_dim": 16,
         "n_action_steps": 4,
+        "n_chunks": 2,
         "num_train_timesteps": 10,
         "num_inference_steps": 10,
         "scheduler_warmup_steps": 0,
