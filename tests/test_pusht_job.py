@@ -75,7 +75,7 @@ def test_sdp_geometry_of_the_main_jobs_config():
     config = json.loads((REPO / "configs" / "pusht_state_cpu.json").read_text())
     line = sdp_geometry(config, "cpu")
     assert line.startswith("SDP geometry: horizon=36 (1 past + 4 chunks x 8 + 3 padding)")
-    assert "25 denoiser calls per chunk" in line
+    assert "4 denoiser calls per chunk (N = 16, h = 4)" in line
     assert sdp_geometry({"policy": {"type": "diffusion"}}, "cpu") is None
 
 
