@@ -8,8 +8,15 @@ clean, pops it, and shifts: the old chunks move down one place (each now one ban
 exactly the start pattern), a chunk of N(0, I) is appended at level N, and the past-action slots,
 now holding actions already executed, are re-noised to chunk 0's level, because training corrupts
 past slots at chunk 0's level too (the authors' code left them clean but labelled noisy).
+
+A call made while d actions of the last chunk are still to run (inference delay, `ChunkGeometry`'s
+committed slots) denoises a *window*: those d actions inserted clean after the past slots, the past
+slots holding the actions before them, the buffer's chunks after them. Its chunk 0 then starts d
+ticks after the observation, exactly where the committed actions end; the shift works on the window
+without its first d slots, so the next buffer has the same layout either way.
 """
 
+import threading
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -31,8 +38,8 @@ class StreamNoise(NamedTuple):
     shift: Tensor  # (B, T, A): the re-noise of the past slots, then the appended tail
 
 
-# (buffer sample, plan, noise) -> (executed chunk, next buffer sample): one streaming call
-StreamStep = Callable[[Tensor, list[StepCoefficients], StreamNoise], tuple[Tensor, Tensor]]
+# (window, plan, noise, committed slots) -> (executed chunk, next buffer sample): one streaming call
+StreamStep = Callable[[Tensor, list[StepCoefficients], StreamNoise, int], tuple[Tensor, Tensor]]
 
 
 def reverse_plan(
@@ -70,6 +77,13 @@ def run_reverse_steps(
     return sample
 
 
+def renoise_past(geometry: ChunkGeometry, start: StepCoefficients, clean: Tensor, noise: Tensor) -> Tensor:
+    """Executed actions (B, To-1, A) noised to the past slots' start level (chunk 0's, ``start``)."""
+    g = geometry
+    a, b = start.sqrt_abar[..., : g.n_past, :], start.sqrt_one_minus_abar[..., : g.n_past, :]  # (..., T, 1)
+    return a * clean + b * noise
+
+
 def shift(geometry: ChunkGeometry, sample: Tensor, start: StepCoefficients, noise: Tensor) -> Tensor:
     """Pop chunk 0 and roll: kept chunks move down one place, the executed actions now in the past
     slots are re-noised to chunk 0's start level (``start``), a chunk of N(0, I) and the padding are
@@ -77,8 +91,7 @@ def shift(geometry: ChunkGeometry, sample: Tensor, start: StepCoefficients, nois
     g = geometry
     kept = sample[:, g.chunk_len : g.n_past + g.n_future]  # past slots, then chunks 1..h-1
     past, rest = kept[:, : g.n_past], kept[:, g.n_past :]
-    a, b = start.sqrt_abar[..., : g.n_past, :], start.sqrt_one_minus_abar[..., : g.n_past, :]  # (..., T, 1)
-    past = a * past + b * noise[:, : g.n_past]
+    past = renoise_past(g, start, past, noise[:, : g.n_past])
     tail = noise[:, g.n_past : g.n_past + g.chunk_len + g.n_pad]
     return torch.cat([past, rest, tail], dim=1)
 
@@ -87,13 +100,16 @@ def stream_step(
     schedule: PerSlotSchedule,
     geometry: ChunkGeometry,
     denoiser: Denoiser,
-    sample: Tensor,
+    window: Tensor,
     plan: list[StepCoefficients],
     noise: StreamNoise,
+    committed: int = 0,
 ) -> tuple[Tensor, Tensor]:
     """Algorithm 1's loop body: s denoiser calls make chunk 0 clean; returns it (B, Tb, A) and the
-    shifted buffer. No host syncs and no random draws: what runs per chunk, ready to compile."""
-    sample = run_reverse_steps(schedule, denoiser, sample, plan, noise.steps)
+    shifted buffer. ``committed`` slots after the past ones are clean and stay so (their level is 0
+    in ``plan``); chunk 0 follows them. No host syncs and no random draws: what runs per chunk,
+    ready to compile."""
+    sample = run_reverse_steps(schedule, denoiser, window, plan, noise.steps)[:, committed:]
     return sample[:, geometry.executed], shift(geometry, sample, plan[0], noise.shift)
 
 
@@ -105,45 +121,94 @@ class StreamingBuffer:
         self.geometry = geometry
         self.schedule = schedule
         self.sample: Tensor | None = None
-        self._plan: list[StepCoefficients] = []  # the s steps of a call, same every call
+        self.last_chunk: Tensor | None = None  # (B, Tb, A) what the last call returned, clean
+        self._past_noise: Tensor | None = None  # the draw that re-noised its end into the past slots
+        self._plans: dict[int, list[StepCoefficients]] = {}  # committed slots -> the s steps of a call
+        self._generation = 0  # counts clear()s: a call that started before one keeps nothing
+        self._lock = threading.Lock()  # clear() may come from another thread than the call
 
     @property
     def batch_size(self) -> int | None:
         return None if self.sample is None else self.sample.shape[0]
 
     def clear(self) -> None:
-        self.sample = None
+        with self._lock:
+            self.sample = self.last_chunk = self._past_noise = None
+            self._generation += 1
 
-    def plan(self, device: torch.device, batch_size: int) -> list[StepCoefficients]:
-        """The s reverse steps every call runs, built once per device and batch size."""
-        built = self._plan[0].timesteps if self._plan else None
-        if built is None or built.device != device or built.shape[0] != batch_size:
+    def plan(self, device: torch.device, batch_size: int, committed: int = 0) -> list[StepCoefficients]:
+        """The s reverse steps of a call with ``committed`` slots, built once per device and batch size."""
+        built = next(iter(self._plans.values()))[0].timesteps if self._plans else None
+        if built is not None and (built.device != device or built.shape[0] != batch_size):
+            self._plans = {}
+        if committed not in self._plans:
             k_start = self.geometry.start_levels.to(device)
-            self._plan = reverse_plan(self.schedule, k_start, self.geometry.steps_per_call, batch_size)
-        return self._plan
+            if committed:
+                delay = torch.tensor([committed], device=device)
+                k_start = self.geometry.delayed(k_start.unsqueeze(0), delay, clean=0)[0]
+            self._plans[committed] = reverse_plan(
+                self.schedule, k_start, self.geometry.steps_per_call, batch_size
+            )
+        return self._plans[committed]
 
     def prime(self, primer: Tensor, generator: torch.Generator | None = None) -> None:
         """Noise a clean (normalised) primer sequence (B, T, A) to the start levels (paper Eq. 4)."""
         t = self.plan(primer.device, primer.shape[0])[0].timesteps
-        self.sample = self.schedule.add_noise(primer, gaussian_like(primer, generator), t)
+        sample = self.schedule.add_noise(primer, gaussian_like(primer, generator), t)
+        with self._lock:
+            self.sample, self.last_chunk, self._past_noise = sample, None, None
 
-    def advance(self, denoiser: Denoiser, generator: torch.Generator | None = None) -> Tensor:
+    def window(self, committed: int) -> Tensor:
+        """What a call with ``committed`` actions of the last chunk still to run denoises: the buffer
+        with those actions inserted clean after the past slots, which hold the actions before them
+        (noised with the draw the shift used), and the chunks moved ``committed`` slots later into
+        the padding. With 0 it is the buffer itself."""
+        g, d = self.geometry, committed
+        if d == 0:
+            return self.sample
+        if not 0 < d <= g.max_delay:
+            raise ValueError(
+                f"{d} committed actions, but this policy's layout has room for max_delay={g.max_delay}: "
+                "train with `--policy.max_delay` at least the inference delay in control ticks."
+            )
+        if self.last_chunk is None:
+            raise ValueError(
+                f"{d} committed actions, but no chunk has run since the stream started: an episode's "
+                "first chunk starts right after its observation (committed=0)."
+            )
+        tb, start = g.chunk_len, self.plan(self.sample.device, self.sample.shape[0])[0]
+        past = renoise_past(g, start, self.last_chunk[:, tb - d - g.n_past : tb - d], self._past_noise)
+        chunks = self.sample[:, g.n_past : g.horizon - d]
+        return torch.cat([past, self.last_chunk[:, tb - d :], chunks], dim=1)
+
+    def advance(
+        self, denoiser: Denoiser, generator: torch.Generator | None = None, committed: int = 0
+    ) -> Tensor:
         """Run s calls of a denoiser of (sample, timesteps (B, T)), pop the now clean chunk (B, Tb, A)
         and roll the buffer forward (the plain form of `run`, which the policy calls with its
-        compiled or cached step). Every random draw (DDPM step noise, re-noised past slots, the new
-        tail) uses ``generator``."""
+        compiled or cached step), ``committed`` actions of the last chunk still to run first. Every
+        random draw (DDPM step noise, re-noised past slots, the new tail) uses ``generator``."""
 
-        def step(sample: Tensor, plan: list[StepCoefficients], noise: StreamNoise) -> tuple[Tensor, Tensor]:
-            return stream_step(self.schedule, self.geometry, denoiser, sample, plan, noise)
+        def step(
+            sample: Tensor, plan: list[StepCoefficients], noise: StreamNoise, committed: int
+        ) -> tuple[Tensor, Tensor]:
+            return stream_step(self.schedule, self.geometry, denoiser, sample, plan, noise, committed)
 
-        return self.run(step, generator)
+        return self.run(step, generator, committed)
 
-    def run(self, step: StreamStep, generator: torch.Generator | None = None) -> Tensor:
-        """One streaming call through ``step`` (e.g. the policy's cached or compiled one): draw its
-        noise, run it, keep the shifted buffer. If ``step`` raises, the buffer is left as it was."""
-        if self.sample is None:
-            raise RuntimeError("The streaming buffer is empty: call prime() after reset().")
-        plan = self.plan(self.sample.device, self.sample.shape[0])
-        noise = StreamNoise(step_noise(plan, self.sample, generator), gaussian_like(self.sample, generator))
-        chunk, self.sample = step(self.sample, plan, noise)
+    def run(self, step: StreamStep, generator: torch.Generator | None = None, committed: int = 0) -> Tensor:
+        """One streaming call through ``step`` (e.g. the policy's cached or compiled one) on the
+        ``window`` of ``committed`` slots: draw its noise, run it, keep the shifted buffer. If ``step``
+        raises, the buffer is left as it was; if ``clear`` ran meanwhile, it stays cleared."""
+        with self._lock:
+            if self.sample is None:
+                raise RuntimeError("The streaming buffer is empty: call prime() after reset().")
+            generation, window = self._generation, self.window(committed)
+        plan = self.plan(window.device, window.shape[0], committed)
+        noise = StreamNoise(step_noise(plan, window, generator), gaussian_like(window, generator))
+        chunk, sample = step(window, plan, noise, committed)
+        with self._lock:
+            if generation == self._generation:
+                self.sample, self.last_chunk = sample, chunk
+                self._past_noise = noise.shift[:, : self.geometry.n_past]
         return chunk

@@ -43,6 +43,11 @@ class SDPConfig(PreTrainedConfig):
             "film_per_slot": each slot's level goes through DP's own step encoder and conditions its own
             position through the blocks' FiLM (pooled to each U-Net level); with every slot at one
             level this is exactly DP's network, so DP's weights all carry over (`unet.py`).
+        max_delay: the largest inference delay, in control ticks, the policy is trained for. A chunk
+            requested at tick t while d <= max_delay actions of the current chunk are still to run is
+            denoised with those d actions as clean, committed slots after the observation, and starts
+            at t + d (`geometry.py`, docs/deployment.md). Training draws d in 0..max_delay per sample.
+            0 (the default) is the paper's SDP: a chunk starts right after its observation.
         init_from: warm start from a trained LeRobot `diffusion` checkpoint (a local `pretrained_model`
             folder or a Hub id): its matching weights and normaliser statistics are copied when the
             policy is built (`warm_start.py`). Ignored when an SDP checkpoint is loaded.
@@ -99,6 +104,7 @@ class SDPConfig(PreTrainedConfig):
     # As LeRobot's DP: copy-padded actions past an episode's end stay in the loss (the policy learns
     # to hold the final pose). Masking them made no measurable difference (docs/results.md).
     do_mask_loss_for_padding: bool = False
+    max_delay: int = 0
 
     # EMA (the authors' settings)
     use_ema: bool = True
@@ -170,6 +176,7 @@ class SDPConfig(PreTrainedConfig):
             n_chunks=self.n_chunks,
             num_inference_steps=self.inference_steps,
             downsampling=2 ** (len(self.down_dims) - 1),
+            max_delay=self.max_delay,
         )
 
     @property

@@ -35,7 +35,7 @@ from .buffer import (
 from .configuration_sdp import SDPConfig
 from .ema import ema_decay, ema_update
 from .model_card import add_introduction
-from .noise_schemes import sample_levels
+from .noise_schemes import sample_delays, sample_levels
 from .schedule import PerSlotSchedule, StepCoefficients
 from .unet import make_variable_noise, plan_embedding_cache
 from .warm_start import WarmStartReport, merged_stats, warm_start
@@ -72,18 +72,19 @@ class SDPModel(DiffusionModel):
     def stream_step(
         self,
         history: dict[str, Tensor],
-        sample: Tensor,
+        window: Tensor,
         plan: list[StepCoefficients],
         noise: StreamNoise,
+        committed: int = 0,
     ) -> tuple[Tensor, Tensor, Tensor]:
         """Everything one streaming call computes: the observation conditioning, s denoiser calls and
         the shift (`buffer.stream_step`), plus one finite flag per observation key, read by the caller
         after the call so that checking costs no host sync inside it. Compiled as one graph with
-        `compile_model`."""
+        `compile_model` (one graph per number of committed slots)."""
         finite = finite_flags(history)
         global_cond = self._prepare_global_conditioning(history)
         chunk, next_sample = stream_step(
-            self.schedule, self.geometry, self.denoiser(global_cond), sample, plan, noise
+            self.schedule, self.geometry, self.denoiser(global_cond), window, plan, noise, committed
         )
         return chunk, next_sample, finite
 
@@ -132,14 +133,21 @@ class SDPModel(DiffusionModel):
             )
         global_cond = self._prepare_global_conditioning(batch)
         levels = sample_levels(self.config.noise_schemes, trajectory.shape[0], self.geometry, self.schedule)
+        levels, committed = sample_delays(levels, self.geometry)
         eps = torch.randn_like(trajectory)
-        pred = self.unet(self.schedule.add_noise(trajectory, eps, levels), levels, global_cond=global_cond)
+        noisy = self.schedule.add_noise(trajectory, eps, levels)
+        if committed is not None:  # exactly clean (DDIM's clean-end abar may be below 1)
+            noisy = torch.where(committed.unsqueeze(-1), trajectory, noisy)
+        pred = self.unet(noisy, levels, global_cond=global_cond)
         target = eps if self.config.prediction_type == "epsilon" else trajectory
         loss = F.mse_loss(pred, target, reduction="none")
+        mask = None if committed is None else ~committed.unsqueeze(-1)  # committed slots are inputs only
         if self.config.do_mask_loss_for_padding and "action_is_pad" in batch:
-            mask = (~batch["action_is_pad"]).unsqueeze(-1)
-            return (loss * mask).sum() / (mask.sum() * loss.shape[-1]).clamp_min(1)
-        return loss.mean()
+            pad = (~batch["action_is_pad"]).unsqueeze(-1)
+            mask = pad if mask is None else mask & pad
+        if mask is None:
+            return loss.mean()
+        return (loss * mask).sum() / (mask.sum() * loss.shape[-1]).clamp_min(1)
 
 
 def finite_flags(history: dict[str, Tensor]) -> Tensor:
@@ -324,6 +332,7 @@ class SDPPolicy(PreTrainedPolicy):
         generator: torch.Generator | None = None,
         inference_delay: int | None = None,
         prev_chunk_left_over: Tensor | None = None,
+        committed: int = 0,
         **kwargs,
     ) -> Tensor:
         """Algorithm 1, one iteration: s = N/h denoiser calls on the buffer, return the clean chunk
@@ -332,27 +341,37 @@ class SDPPolicy(PreTrainedPolicy):
         Online (after select_action filled the queues) the stacked history is used; offline, `batch`
         is a dataloader batch of (B, n_obs_steps, ...) observations (`_offline_history`).
 
+        ``committed``: how many actions of the last chunk still run after this observation before the
+        new chunk starts (the inference delay in control ticks, at most `max_delay`). They enter the
+        denoised sequence as clean slots, so the chunk returned is the one that follows them. 0: the
+        chunk starts right after the observation (the paper's SDP).
+
         From LeRobot's RTC engine (`inference_delay` / `prev_chunk_left_over` given), `batch` is one
-        frame, and the result is the previous chunk's unexecuted actions followed by the new chunk:
-        the buffer's next chunk starts where the previous one ends (`_rtc_chunk`).
+        frame, and the result is the previous chunk's unexecuted actions followed by the new chunk
+        (`_rtc_chunk`).
 
         Wrapped in `torch.compile` (`lerobot-rollout --use_torch_compile`), the buffer bookkeeping
         stays eager and the streaming step runs compiled, as with `compile_model`."""
         compiled = self.config.compile_model or torch.compiler.is_compiling()
         if inference_delay is not None or prev_chunk_left_over is not None:
             return self._rtc_chunk(batch, generator, compiled, prev_chunk_left_over, **kwargs)
-        return self._predict_action_chunk(batch, generator, compiled, **kwargs)
+        return self._predict_action_chunk(batch, generator, compiled, committed, **kwargs)
 
     @torch.compiler.disable
     def _predict_action_chunk(
-        self, batch: dict[str, Tensor], generator: torch.Generator | None, compiled: bool, **kwargs
+        self,
+        batch: dict[str, Tensor],
+        generator: torch.Generator | None,
+        compiled: bool,
+        committed: int,
+        **kwargs,
     ) -> Tensor:
         reject_unknown_kwargs("predict_action_chunk", kwargs)
         if self._queues[OBS_STATE]:
             history = {k: torch.stack(list(q), dim=1) for k, q in self._queues.items() if k != ACTION}
         else:
             history = self._offline_history(batch)
-        return self._stream(history, generator, compiled)
+        return self._stream(history, generator, compiled, committed)
 
     @torch.compiler.disable
     def _rtc_chunk(
@@ -365,15 +384,20 @@ class SDPPolicy(PreTrainedPolicy):
     ) -> Tensor:
         """One RTC engine call: the engine passes one frame (it never sees every control tick, so the
         history is that frame repeated n_obs_steps times) and the unexecuted rest of what the last
-        call returned, zero-padded to `--inference.rtc.execution_horizon`. The engine drops the first
-        `inference_delay` actions of the result (executed while this call ran)."""
+        call returned, zero-padded to `--inference.rtc.execution_horizon`. The result is that rest
+        followed by the buffer's next chunk; the engine drops its first `inference_delay` actions
+        (executed while this call ran). A policy trained with `max_delay` denoises the chunk with the
+        rest as committed slots, so the chunk is the one that starts when the rest has run; one
+        trained without denoises it as if it started right after the observation."""
         reject_unknown_kwargs("predict_action_chunk", kwargs)
         frame = {k: v for k, v in batch.items() if k in self.config.input_features}
         to = self.config.n_obs_steps
         repeated = {k: v.unsqueeze(1).expand(-1, to, *v.shape[1:]) for k, v in frame.items()}
         history = self._offline_history(repeated)
         prefix = self._rtc_prefix(left_over) if left_over is not None else None
-        chunk = self._stream(history, generator, compiled)
+        # the rest is the end of the buffer's last chunk unless the stream restarted since
+        committed = len(prefix) if prefix is not None and self._buffer.last_chunk is not None else 0
+        chunk = self._stream(history, generator, compiled, committed if self.config.max_delay else 0)
         if prefix is None:
             return chunk
         return torch.cat([prefix.to(chunk).unsqueeze(0).expand(chunk.shape[0], -1, -1), chunk], dim=1)
@@ -381,8 +405,8 @@ class SDPPolicy(PreTrainedPolicy):
     def _rtc_prefix(self, left_over: Tensor) -> Tensor:
         """The previous chunk's unexecuted actions (T, A), without the engine's zero padding. SDP streams
         one chunk per call, so the engine must call once per chunk: when fewer than n_action_steps
-        actions are left."""
-        tb = self.config.n_action_steps
+        actions are left, and, trained with `max_delay`, when at most that many are."""
+        tb, max_delay = self.config.n_action_steps, self.config.max_delay
         rows = left_over.reshape(-1, left_over.shape[-1])
         used = rows.abs().sum(-1) > 0  # the engine pads with zero rows; the last used row ends it
         n = int((used * torch.arange(1, len(used) + 1, device=used.device)).max())
@@ -393,12 +417,24 @@ class SDPPolicy(PreTrainedPolicy):
                 f"`lerobot-rollout --inference.type=rtc --inference.queue_threshold=K` with K < {tb} "
                 f"(about the inference time in control ticks) and --inference.rtc.execution_horizon >= {tb}."
             )
+        if max_delay and n > max_delay:
+            raise ValueError(
+                f"This SDP policy was trained for at most max_delay={max_delay} actions left when a chunk "
+                f"is requested, and the RTC engine called with {n} left. Run `lerobot-rollout "
+                f"--inference.type=rtc --inference.queue_threshold=K` with K <= {max_delay} (the inference "
+                "time in control ticks), or train with a larger `--policy.max_delay`."
+            )
         return rows[:n]
 
     def _stream(
-        self, history: dict[str, Tensor], generator: torch.Generator | None, compiled: bool
+        self,
+        history: dict[str, Tensor],
+        generator: torch.Generator | None,
+        compiled: bool,
+        committed: int = 0,
     ) -> Tensor:
-        """One streaming call on a (B, n_obs_steps, ...) history: prime a new stream, run the step."""
+        """One streaming call on a (B, n_obs_steps, ...) history, ``committed`` actions of the last
+        chunk still to run before the new one: prime a new stream, run the step."""
         batch_size = history[OBS_STATE].shape[0]
         if self._buffer.batch_size not in (None, batch_size):
             self._buffer.clear()
@@ -408,14 +444,16 @@ class SDPPolicy(PreTrainedPolicy):
             self._buffer.prime(self._primer(model, history, generator), generator)
         run = model.streaming_step_fn(history[OBS_STATE].device, compiled)
 
-        def step(sample: Tensor, plan: list[StepCoefficients], noise: StreamNoise) -> tuple[Tensor, Tensor]:
+        def step(
+            window: Tensor, plan: list[StepCoefficients], noise: StreamNoise, committed: int
+        ) -> tuple[Tensor, Tensor]:
             model.cache_step_embeddings(plan)
-            chunk, next_sample, finite = run(history, sample, plan, noise)
+            chunk, next_sample, finite = run(history, window, plan, noise, committed)
             self._refuse_non_finite(history, finite)  # the one host read, after the chunk is computed
             return chunk, next_sample
 
         try:
-            return self._buffer.run(step, generator)
+            return self._buffer.run(step, generator, committed)
         except ValueError:
             if fresh:  # never keep a stream primed from a refused observation
                 self._buffer.clear()

@@ -9,6 +9,10 @@ level per slot) and Fig. "Trajectory Noise Corruptions"; sdp-algorithm.md, secti
 - chunkwise: chunk i in the band of steps remaining [i*s+1, (i+1)*s], one offset shared by all
   chunks of the sample, so training sees exactly the staircases that streaming inference visits.
 
+Inference delay (`max_delay` > 0): each sample also draws a delay d ~ U{0..max_delay}; its d
+committed slots (the actions that run while the chunk is computed, `ChunkGeometry.delayed`) are
+clean inputs, and every later slot takes the level drawn for the slot d places before it.
+
 A mixture draws one scheme *per sample* with the given weights (the authors drew one per batch;
 per sample gives every batch the mixture's proportions). All levels are training timesteps, drawn
 on the device the schedule's tables live on (the model's): no host round trip per training step.
@@ -21,7 +25,7 @@ import torch
 from torch import Tensor
 
 from .geometry import ChunkGeometry
-from .schedule import PerSlotSchedule
+from .schedule import CLEAN, PerSlotSchedule
 
 
 @dataclass
@@ -97,3 +101,13 @@ def sample_levels(
         choice += u >= bound
     levels = torch.stack([SCHEMES[name](batch_size, geometry, schedule) for name in active])
     return levels[choice, torch.arange(batch_size, device=device)]
+
+
+def sample_delays(levels: Tensor, geometry: ChunkGeometry) -> tuple[Tensor, Tensor | None]:
+    """``levels`` (B, T) laid out for one inference delay d ~ U{0..max_delay} per sample, and the
+    committed slots (B, T) the loss leaves out. With max_delay = 0: the levels unchanged, no mask and
+    no random draw (the paper's training, bit for bit)."""
+    if geometry.max_delay == 0:
+        return levels, None
+    delay = torch.randint(geometry.max_delay + 1, (levels.shape[0],), device=levels.device)
+    return geometry.delayed(levels, delay, clean=CLEAN), geometry.committed_mask(delay)

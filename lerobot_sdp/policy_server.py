@@ -18,15 +18,23 @@ What SDP needs on top of LeRobot's server (docs/deployment.md, "Async inference"
   server keeps the plan it sent (`Plan`, normalised actions by timestep); the buffer's next chunk
   begins where the plan ends. A reply is the plan's unexecuted rest followed by one streamed chunk
   (N/h denoiser calls), so the buffer advances one chunk per chunk the robot can execute, whatever
-  the number of actions executed between two calls. When a whole chunk or more is still unexecuted,
-  the reply is that rest alone, without a denoiser call. A timestep lower than the plan's start is a
-  new episode: the stream restarts.
+  the number of actions executed between two calls. A timestep lower than the plan's start is a new
+  episode: the stream restarts.
+- **On time.** A chunk streams only once at most `delay_ticks` unexecuted actions are left (the
+  inference delay in control ticks: `--delay_ticks`, or measured from the server's own inference
+  times), so that it arrives as the rest runs out; before that the reply is the rest alone, without
+  a denoiser call. A policy trained with `max_delay` denoises the chunk with that rest as committed
+  slots (`SDPPolicy.predict_action_chunk(committed=...)`): the observation of tick t conditions a
+  chunk that starts at t + 1 + rest, as in training. A policy trained without it denoises the chunk
+  as if it started right after the observation, at most `delay_ticks` ticks early.
 """
 
 import logging
+import math
 import pickle  # nosec: LeRobot's protocol pickles its messages
 import threading
 import time
+from collections import deque
 from concurrent import futures
 from dataclasses import dataclass, field
 from typing import Any
@@ -54,6 +62,7 @@ if "sdp" not in SUPPORTED_POLICIES:  # the list LeRobot's server checks, extende
 
 logger = logging.getLogger(__name__)
 FRAMES_KEPT = 64  # received observations kept per client for the history (control timesteps)
+LATENCIES_KEPT = 8  # the delay estimate is the slowest of the last few chunks
 
 
 @dataclass
@@ -62,6 +71,13 @@ class SDPPolicyServerConfig(PolicyServerConfig):
     session_timeout_s: float = field(
         default=30.0, metadata={"help": "Drop a client's session after this long without a call"}
     )
+    delay_ticks: int | None = field(
+        default=None,
+        metadata={
+            "help": "Stream a chunk once at most this many unexecuted actions are left (the inference "
+            "delay in control ticks); default: measured, the slowest of the last chunks at --fps"
+        },
+    )
 
     def __post_init__(self):
         super().__post_init__()
@@ -69,6 +85,8 @@ class SDPPolicyServerConfig(PolicyServerConfig):
             raise ValueError(f"max_clients must be at least 1, got {self.max_clients}")
         if self.session_timeout_s <= 0:
             raise ValueError(f"session_timeout_s must be positive, got {self.session_timeout_s}")
+        if self.delay_ticks is not None and self.delay_ticks < 0:
+            raise ValueError(f"delay_ticks must be at least 0 (or unset: measured), got {self.delay_ticks}")
 
 
 @dataclass
@@ -161,6 +179,7 @@ class ClientPolicyServer(PolicyServer):
         self.error: str | None = None
         self.current: TimedObservation | None = None
         self.last_seen = time.monotonic()
+        self.latencies: deque[float] = deque(maxlen=LATENCIES_KEPT)  # seconds per streamed chunk
 
     def _reset_server(self) -> None:
         super()._reset_server()
@@ -214,8 +233,8 @@ class ClientPolicyServer(PolicyServer):
         return self.sdp_reply(self._history(observation, t), t)[:, : self.actions_per_chunk]
 
     def sdp_reply(self, history: dict[str, Tensor], t: int) -> Tensor:
-        """The actions for timesteps t, t + 1, ...: the plan's unexecuted rest, then one streamed chunk."""
-        tb = self.policy.config.n_action_steps
+        """The actions for timesteps t, t + 1, ...: the plan's unexecuted rest, then one streamed chunk
+        once at most `delay_ticks()` of the rest are left to run."""
         plan = self.plan
         if plan is not None and t < plan.start:
             logger.info(
@@ -231,12 +250,30 @@ class ClientPolicyServer(PolicyServer):
             self.policy.drop_queued_actions()
             plan = None
         rest = plan.actions[:, t - plan.start :] if plan is not None else None
-        if rest is not None and rest.shape[1] - 1 >= tb:  # the buffer is a chunk ahead of the robot
+        left = 0 if rest is None else max(0, rest.shape[1] - 1)  # the action at t has run
+        if left > self.delay_ticks():  # the chunk would run late: stream at a later observation
             return rest
-        chunk = self.policy.predict_action_chunk(history)
+        committed = left if self.policy.config.max_delay else 0
+        start = time.perf_counter()
+        chunk = self.policy.predict_action_chunk(history, committed=committed)
+        self.latencies.append(time.perf_counter() - start)
         actions = chunk if rest is None else torch.cat([rest, chunk], dim=1)
         self.plan = Plan(t, actions)
         return actions
+
+    def delay_ticks(self) -> int:
+        """Unexecuted actions left at which a chunk streams: `--delay_ticks`, else the slowest recent
+        chunk (at least LeRobot's `--inference_latency`, which the server pads every reply to) in control
+        ticks; a whole chunk less one before the first measurement. At most `max_delay` for a policy
+        trained with it (its chunk then starts right after the committed rest)."""
+        config, policy_config = self.config, self.policy.config
+        if config.delay_ticks is not None:
+            ticks = config.delay_ticks
+        elif self.latencies:
+            ticks = math.ceil(max(max(self.latencies), config.inference_latency) * config.fps)
+        else:
+            ticks = policy_config.n_action_steps - 1
+        return min(ticks, policy_config.max_delay) if policy_config.max_delay else ticks
 
     def _history(self, current: dict[str, Tensor], t: int) -> dict[str, Tensor]:
         """(1, n_obs_steps, ...) per input feature, from the frames received for t - n_obs_steps + 1 .. t."""

@@ -18,6 +18,8 @@ import torch
 from diffusers import DDIMScheduler, DDPMScheduler
 from torch import Tensor, nn
 
+CLEAN = -1  # the training timestep of a clean slot (k = 0)
+
 
 class PerSlotSchedule(nn.Module):
     """Schedule tables as non-persistent buffers, so they follow ``.to(device)`` and stay out of
@@ -39,7 +41,9 @@ class PerSlotSchedule(nn.Module):
         self.num_train_timesteps = cfg.num_train_timesteps
         scheduler.set_timesteps(num_inference_steps)
         timesteps = torch.as_tensor(scheduler.timesteps, dtype=torch.long).flip(0)  # ascending
-        self.register_buffer("timestep_table", torch.cat([torch.tensor([-1]), timesteps]), persistent=False)
+        self.register_buffer(
+            "timestep_table", torch.cat([torch.tensor([CLEAN]), timesteps]), persistent=False
+        )
         # diffusers uses 1 (DDPM) or final_alpha_cumprod (DDIM) once the previous timestep is negative.
         final = float(scheduler.final_alpha_cumprod) if self.is_ddim else 1.0
         abar = scheduler.alphas_cumprod.to(torch.float32)

@@ -40,3 +40,34 @@ def test_plain_dp_is_one_chunk():
 def test_impossible_geometry_names_the_value_to_change(kw, match):
     with pytest.raises(ValueError, match=match):
         geo(**kw)
+
+
+def test_committed_slots_sit_after_the_past_and_push_the_chunks_later():
+    """docs/deployment.md's layout table: To=2, Tb=4, h=2, N=10 (s=5), room for 3 committed slots."""
+    g = geo(chunk_len=4, num_inference_steps=10, max_delay=3)
+    assert (g.horizon, g.n_pad) == (12, 3)
+    layouts = {
+        0: [5, 5, 5, 5, 5, 10, 10, 10, 10, 10, 10, 10],
+        1: [5, 0, 5, 5, 5, 5, 10, 10, 10, 10, 10, 10],
+        2: [5, 0, 0, 5, 5, 5, 5, 10, 10, 10, 10, 10],
+        3: [5, 0, 0, 0, 5, 5, 5, 5, 10, 10, 10, 10],
+    }
+    delays = torch.tensor(list(layouts))
+    start = g.start_levels.expand(len(layouts), -1)
+    assert g.delayed(start, delays, clean=0).tolist() == list(layouts.values())
+    assert g.committed_mask(delays).sum(1).tolist() == [0, 1, 2, 3]
+    assert g.committed_mask(delays)[2].nonzero().flatten().tolist() == [1, 2]
+
+
+def test_room_for_committed_slots_grows_the_horizon_only_past_the_padding():
+    base = dict(chunk_len=8, n_chunks=4, num_inference_steps=16)
+    assert geo(**base).horizon == 36  # 1 + 32 + 3 padding
+    assert geo(**base, max_delay=3).horizon == 36  # the padding holds 3 committed slots
+    assert geo(**base, max_delay=4).horizon == 40
+    assert "room for 4 committed" in geo(**base, max_delay=4).describe()
+
+
+@pytest.mark.parametrize("max_delay", [-1, 8])
+def test_max_delay_beyond_the_executed_chunk_is_refused(max_delay):
+    with pytest.raises(ValueError, match=r"`max_delay` must be between 0 and .* = 7"):
+        geo(max_delay=max_delay)

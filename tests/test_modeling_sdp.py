@@ -337,3 +337,77 @@ def test_drop_queued_actions_drops_the_buffer_and_keeps_the_history():
     policy.ema_model.unet.register_forward_hook(lambda *_: calls.append(1))
     assert policy.select_action(observation(cfg, seed=5)).shape == (2, 2)
     assert len(calls) == policy.geometry.steps_per_call and policy._buffer.sample is not None
+
+
+def test_delay_training_feeds_committed_slots_clean_and_leaves_them_out_of_the_loss(monkeypatch):
+    """x0 prediction of the truth everywhere but garbage on the committed slots: loss exactly 0."""
+    import lerobot_sdp.modeling_sdp as modeling
+
+    cfg = tiny_config(prediction_type="sample", max_delay=2)
+    policy = SDPPolicy(cfg)
+    g = policy.geometry
+    delays = torch.tensor([0, 1, 2, 2])
+    monkeypatch.setattr(
+        modeling,
+        "sample_delays",
+        lambda levels, geometry: (
+            geometry.delayed(levels, delays, clean=-1),
+            geometry.committed_mask(delays),
+        ),
+    )
+    batch = training_batch(cfg)
+    seen = {}
+
+    def unet(x, t, global_cond=None):
+        seen["x"], seen["t"] = x, t
+        return torch.where(g.committed_mask(delays).unsqueeze(-1), 1e3, batch["action"])
+
+    policy.model.unet.forward = unet
+    loss, _ = policy.forward(batch)
+    assert loss.item() == 0.0
+    committed = g.committed_mask(delays)
+    assert torch.equal(seen["x"][committed], batch["action"][committed])  # clean inputs, exactly
+    assert (seen["t"][committed] == -1).all() and (seen["t"][~committed] >= 0).all()
+    assert not torch.equal(seen["x"][~committed], batch["action"][~committed])  # the rest is noised
+
+
+def test_delay_ready_policy_at_zero_delay_is_the_plain_stream():
+    """max_delay = 1 fits tiny_config's padding: same network, and at committed=0 the same actions."""
+    torch.manual_seed(0)
+    plain = SDPPolicy(tiny_config()).eval()
+    ready = SDPPolicy(tiny_config(max_delay=1)).eval()
+    assert ready.geometry.horizon == plain.geometry.horizon
+    ready.load_state_dict(plain.state_dict())
+    g1, g2 = torch.Generator().manual_seed(3), torch.Generator().manual_seed(3)
+    for step in range(3 * plain.config.n_action_steps):
+        obs = observation(plain.config, seed=step)
+        assert torch.equal(plain.select_action(obs, generator=g1), ready.select_action(obs, generator=g2))
+    hist = history(plain.config)
+    torch.testing.assert_close(
+        plain.predict_action_chunk(hist, generator=g1),
+        ready.predict_action_chunk(hist, generator=g2, committed=0),
+    )
+
+
+def test_committed_actions_need_a_policy_trained_for_them():
+    policy = SDPPolicy(tiny_config()).eval()
+    policy.predict_action_chunk(history(policy.config))
+    with pytest.raises(ValueError, match="max_delay=0.*--policy.max_delay"):
+        policy.predict_action_chunk(history(policy.config), committed=1)
+
+
+def test_reset_while_a_chunk_is_computed_leaves_a_fresh_stream():
+    torch.manual_seed(0)
+    policy = SDPPolicy(tiny_config()).eval()
+    reference = SDPPolicy(tiny_config()).eval()
+    reference.load_state_dict(policy.state_dict())
+    hist = history(policy.config)
+    policy.predict_action_chunk(hist)
+    hook = policy.ema_model.unet.register_forward_hook(lambda *_: policy.reset())  # the control thread
+    policy.predict_action_chunk(hist)
+    hook.remove()
+    assert policy._buffer.sample is None
+    torch.testing.assert_close(
+        policy.predict_action_chunk(hist, generator=torch.Generator().manual_seed(7)),
+        reference.predict_action_chunk(hist, generator=torch.Generator().manual_seed(7)),
+    )

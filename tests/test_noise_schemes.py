@@ -3,7 +3,13 @@ import torch
 from diffusers import DDPMScheduler
 
 from lerobot_sdp.geometry import ChunkGeometry
-from lerobot_sdp.noise_schemes import SCHEMES, NoiseSchemeWeights, chunkwise_levels, sample_levels
+from lerobot_sdp.noise_schemes import (
+    SCHEMES,
+    NoiseSchemeWeights,
+    chunkwise_levels,
+    sample_delays,
+    sample_levels,
+)
 from lerobot_sdp.schedule import PerSlotSchedule
 
 
@@ -75,3 +81,37 @@ def test_a_single_scheme_mixture_gives_only_that_scheme(name):
     weights = NoiseSchemeWeights(**{n: float(n == name) for n in SCHEMES})
     kind = classify_rows(sample_levels(weights, 512, g, sched), g, sched)
     assert (kind == list(SCHEMES).index(name)).all()
+
+
+def delay_setup(max_delay):
+    g = ChunkGeometry(
+        n_obs_steps=2, chunk_len=4, n_chunks=2, num_inference_steps=10, downsampling=4, max_delay=max_delay
+    )
+    return g, PerSlotSchedule(DDPMScheduler(num_train_timesteps=100, beta_schedule="squaredcos_cap_v2"), 10)
+
+
+def test_without_max_delay_the_levels_pass_through_without_a_random_draw():
+    g, schedule = delay_setup(0)
+    levels = sample_levels(NoiseSchemeWeights(), 8, g, schedule)
+    state = torch.get_rng_state()
+    out, committed = sample_delays(levels, g)
+    assert out is levels and committed is None
+    assert torch.equal(torch.get_rng_state(), state)  # the paper's training, draw for draw
+
+
+def test_each_sample_draws_its_delay_and_its_committed_slots_are_clean():
+    g, schedule = delay_setup(3)
+    torch.manual_seed(0)
+    levels = sample_levels(NoiseSchemeWeights(chunkwise=1.0, constant=0.0), 4000, g, schedule)
+    delayed, committed = sample_delays(levels, g)
+    d = committed.sum(1)
+    counts = torch.bincount(d, minlength=4)
+    assert len(counts) == 4
+    assert (counts > 4000 / 4 * 0.85).all()  # U{0..3}: about 1000 each
+    for i in range(50):
+        n = int(d[i])
+        row = delayed[i].tolist()
+        assert row[1 : 1 + n] == [-1] * n  # committed slots: the clean timestep
+        assert row[0] == levels[i, 0].item()  # the past slot keeps its level
+        assert row[1 + n :] == levels[i, 1 : g.horizon - n].tolist()  # the rest moved n slots later
+        assert committed[i].nonzero().flatten().tolist() == list(range(1, 1 + n))

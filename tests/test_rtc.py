@@ -65,3 +65,43 @@ def test_rtc_called_more_often_than_once_per_chunk_is_a_clear_error():
     full = torch.rand(cfg.n_action_steps, 2) + 0.1  # a whole chunk still to execute
     with pytest.raises(ValueError, match=r"--inference\.queue_threshold=K` with K < 4"):
         policy.predict_action_chunk(frame(cfg, 2), inference_delay=1, prev_chunk_left_over=full)
+
+
+def test_a_delay_trained_policy_denoises_the_rtc_leftover_as_committed_slots():
+    """Trained with max_delay, the chunk after the leftover is the one that follows it (the leftover
+    enters the denoised sequence clean), not one denoised as if it started at the observation."""
+    cfg = tiny_config(max_delay=2)
+    tb, horizon = cfg.n_action_steps, 10
+    policy = SDPPolicy(cfg).eval()
+    reference = SDPPolicy(cfg).eval()
+    reference.load_state_dict(policy.state_dict())
+    queue = ActionQueue(RTCConfig(execution_horizon=horizon))
+    g, g_ref = torch.Generator().manual_seed(0), torch.Generator().manual_seed(0)
+    first = policy.predict_action_chunk(
+        frame(cfg, 1), generator=g, inference_delay=0, prev_chunk_left_over=None
+    )
+    queue.merge(first[0], first[0], real_delay=0)
+    for _ in range(tb - 2):
+        queue.get()
+    left = queue.get_left_over()
+    padded = _normalize_prev_actions_length(left, target_steps=horizon)
+    second = policy.predict_action_chunk(
+        frame(cfg, 2), generator=g, inference_delay=2, prev_chunk_left_over=padded
+    )
+    assert torch.equal(second[0, :2], left)
+
+    def history(seed):
+        return {
+            k: v.unsqueeze(1).expand(-1, cfg.n_obs_steps, *v.shape[1:])
+            for k, v in observation(cfg, 1, seed=seed).items()
+        }
+
+    reference.predict_action_chunk(history(1), generator=g_ref)
+    expected = reference.predict_action_chunk(history(2), generator=g_ref, committed=2)
+    torch.testing.assert_close(second[:, 2:], expected)
+
+    # more actions left than the policy was trained to commit: the fix is named
+    policy.predict_action_chunk(frame(cfg, 3), inference_delay=0, prev_chunk_left_over=None)
+    three = _normalize_prev_actions_length(torch.rand(3, 2) + 0.1, target_steps=horizon)
+    with pytest.raises(ValueError, match=r"queue_threshold=K` with K <= 2"):
+        policy.predict_action_chunk(frame(cfg, 4), inference_delay=1, prev_chunk_left_over=three)
