@@ -47,11 +47,11 @@ def raw_observation(agent_x: float = 100.0) -> dict:
     return {**values, "agent_x.pos": agent_x, "task": ""}
 
 
-def session_with(server_mod, policy, tmp_path=None, actions_per_chunk: int = 100):
+def session_with(server_mod, policy, tmp_path=None, actions_per_chunk: int = 100, **config):
     """A ClientPolicyServer holding `policy`, as SendPolicyInstructions would leave it."""
     from lerobot_sdp import make_sdp_pre_post_processors
 
-    session = server_mod.ClientPolicyServer(server_mod.SDPPolicyServerConfig())
+    session = server_mod.ClientPolicyServer(server_mod.SDPPolicyServerConfig(**config))
     session.policy, session.policy_type, session.actions_per_chunk = policy, "sdp", actions_per_chunk
     session.preprocessor, session.postprocessor = make_sdp_pre_post_processors(
         policy.config, PUSHT_KEYPOINT_STATS
@@ -86,9 +86,9 @@ def counted(policy) -> list:
 
 def test_reply_is_the_unexecuted_plan_then_one_streamed_chunk(server_mod):
     """The buffer advances one chunk per reply that streams; the reply's head is what the robot has
-    not executed yet; a chunk or more still ahead of the robot means no denoiser call."""
+    not executed yet; more than `delay_ticks` (here 3) still ahead of the robot means no denoiser call."""
     served, reference = twin_policies()
-    session = session_with(server_mod, served)
+    session = session_with(server_mod, served, delay_ticks=TB - 1)
     calls = counted(served)
     obs = history(served.config, batch_size=1)
 
@@ -106,7 +106,7 @@ def test_reply_is_the_unexecuted_plan_then_one_streamed_chunk(server_mod):
     assert torch.allclose(second[:, 2:], reference.predict_action_chunk(obs))
     assert (session.plan.start, session.plan.end) == (2, 2 + 2 + TB) and len(calls) == 2
 
-    # One more action executed: 4 of the plan's actions are still ahead, a whole chunk: no denoising.
+    # One more action executed: 4 of the plan's actions are still ahead, more than 3: no denoising.
     third = session.sdp_reply(obs, 3)
     assert torch.equal(third, second[:, 1:]) and len(calls) == 2 and session.plan.start == 2
 
@@ -129,7 +129,7 @@ def test_reply_is_the_unexecuted_plan_then_one_streamed_chunk(server_mod):
 def test_stream_restarts_when_the_timestep_leaves_the_plan(server_mod, jump):
     """A timestep before the plan (a new episode) or past its end restarts the stream from the primer."""
     served, reference = twin_policies()
-    session = session_with(server_mod, served)
+    session = session_with(server_mod, served, delay_ticks=TB - 1)
     obs = history(served.config, batch_size=1)
     session.sdp_reply(obs, 10)
     session.sdp_reply(obs, 12)
@@ -139,6 +139,72 @@ def test_stream_restarts_when_the_timestep_leaves_the_plan(server_mod, jump):
     torch.manual_seed(4)
     assert torch.allclose(restarted, reference.predict_action_chunk(obs))  # the reference's first chunk
     assert (session.plan.start, session.plan.end) == (t, t + TB)
+
+
+class ClientClock:
+    """What LeRobot's RobotClient does with replies, on a simulated clock: it executes one action per
+    tick, stamps each observation with its last executed timestep t, sends one every tick while its
+    queue is at most a chunk, and keeps a reply's actions for timesteps > t. A reply arrives `latency`
+    ticks after its observation."""
+
+    def __init__(self, session, obs, latency: int):
+        self.session, self.obs, self.latency = session, obs, latency
+        self.queue: dict[int, torch.Tensor] = {}
+        self.in_flight: list[tuple[int, int, torch.Tensor]] = []  # arrival tick, t, actions
+        self.executed, self.stalls = -1, 0
+
+    def tick(self, now: int) -> None:
+        for arrival, t, actions in [r for r in self.in_flight if r[0] <= now]:
+            self.queue.update({t + i: a for i, a in enumerate(actions[0]) if t + i > self.executed})
+        self.in_flight = [r for r in self.in_flight if r[0] > now]
+        if self.executed + 1 in self.queue:
+            self.executed += 1
+            del self.queue[self.executed]
+        else:
+            self.stalls += 1
+        if len(self.queue) <= TB:
+            t = max(self.executed, 0)
+            self.in_flight.append((now + self.latency, t, self.session.sdp_reply(self.obs, t)))
+
+
+@pytest.mark.parametrize("max_delay", [0, 2])
+def test_a_chunk_starts_delay_ticks_after_its_observation_on_a_client_clock(server_mod, max_delay):
+    """The server streams when `delay_ticks` unexecuted actions are left, so the chunk built from the
+    observation stamped t runs from t + 1 + delay_ticks, and the robot never waits for it; a policy
+    trained with max_delay denoises it with that rest committed, one trained without as if it ran at
+    t + 1."""
+    delay = 2
+    served, reference = twin_policies(max_delay=max_delay)
+    session = session_with(server_mod, served, delay_ticks=delay)
+    obs = history(served.config, batch_size=1)
+    streams, original = [], served.predict_action_chunk
+
+    def recorded(history_, committed=0, **kwargs):
+        first_action = session.plan.end if session.plan is not None else session.current_t + 1
+        streams.append((session.current_t, first_action, committed))
+        return original(history_, committed=committed, **kwargs)
+
+    served.predict_action_chunk = recorded
+    real_reply = session.sdp_reply
+
+    def reply(history_, t):
+        session.current_t = t
+        return real_reply(history_, t)
+
+    session.sdp_reply = reply
+    clock = ClientClock(session, obs, latency=delay)
+    torch.manual_seed(0)
+    for now in range(60):
+        clock.tick(now)
+    assert len(streams) >= 8
+    gaps = [first_action - t - 1 for t, first_action, _ in streams[1:]]
+    assert gaps == [delay] * len(gaps)  # observation-to-first-action gap: the delay, every chunk
+    assert [c for *_, c in streams[1:]] == [delay if max_delay else 0] * len(gaps)
+    assert clock.stalls == delay  # only while the episode's first chunk was on its way
+    # the streamed chunks are the reference stream's, with the same committed actions
+    torch.manual_seed(0)
+    expected = [reference.predict_action_chunk(obs, committed=c) for *_, c in streams]
+    torch.testing.assert_close(session.plan.actions[0, -TB:], expected[-1][0])
 
 
 def test_history_is_the_clients_frames_by_timestep(server_mod, tmp_path):
