@@ -32,60 +32,102 @@ def test_import_registers_the_robot_without_gym_pusht():
     assert out.split() == ["PushTSimConfig", "False"]
 
 
-def test_robot_features_steps_and_episode_stats(tmp_path):
+def clocked(tmp_path, monkeypatch, **kwargs):
+    """A connected robot on a wall clock the test sets (`now[0]`, seconds)."""
+    from lerobot_sdp.robots import pusht_sim
+
+    now = [0.0]
+    monkeypatch.setattr(pusht_sim.time, "perf_counter", lambda: now[0])
+    robot = make_robot(tmp_path, **kwargs)
+    robot.connect()
+    return robot, now
+
+
+def act(robot, x: float = 100.0, y: float = 120.0) -> dict:
+    return robot.send_action({"agent_x.pos": x, "agent_y.pos": y})
+
+
+def test_robot_features_one_episode_and_its_stats(tmp_path, monkeypatch):
     from lerobot_sdp.robots.pusht_sim import AGENT_KEYS, PushTSim
 
-    robot = make_robot(tmp_path, episode_length=3, stats_path=tmp_path / "stats.json")
+    robot, now = clocked(tmp_path, monkeypatch, episode_length=3, stats_path=tmp_path / "stats.json")
     assert isinstance(robot, PushTSim)
     assert list(robot.action_features) == list(AGENT_KEYS)
     features = robot.observation_features
     assert len(features) == 18 and all(v is float and k.endswith(".pos") for k, v in features.items())
-    assert not robot.is_connected
-    robot.connect()
     try:
         obs = robot.get_observation()
         assert list(obs) == list(features)
-        first_kp = obs["block_kp0_x.pos"]
-        sent = robot.send_action({"agent_x.pos": 100.0, "agent_y.pos": 120.0})
-        assert sent == {"agent_x.pos": 100.0, "agent_y.pos": 120.0}
+        assert act(robot) == {"agent_x.pos": 100.0, "agent_y.pos": 120.0}
         assert robot.get_observation()["agent_x.pos"] != obs["agent_x.pos"]  # the pusher moved
         assert 0.0 <= robot.last_reward <= 1.0
-        for _ in range(3):
-            robot.send_action({"agent_x.pos": 100.0, "agent_y.pos": 120.0})
-        # the first episode ended after 3 actions and the env reset itself
-        assert robot.actions_sent == 4 and len(robot.episodes) == 1
-        assert robot.episodes[0]["steps"] == 3 and robot.stats()["current_episode"]["steps"] == 1
-        assert robot.get_observation()["block_kp0_x.pos"] != first_kp
+        for tick in (1, 2):
+            now[0] = 0.1 * tick
+            act(robot)
+        # the episode ended after 3 ticks: the robot holds still, the env does not reset under the policy
+        over = robot.get_observation()
+        assert len(robot.episodes) == 1 and robot.episodes[0]["steps"] == 3
+        now[0] = 0.3
+        act(robot, 400.0, 400.0)
+        now[0] = 5.0
+        assert robot.get_observation() == over and robot.actions_after_end == 1
         # LeRobot's return-to-initial-position (all `.pos` keys) does not step the env
         robot.send_action(dict(obs))
-        assert robot.actions_sent == 4 and robot.ignored_commands == 1
+        assert robot.actions_sent == 3 and robot.ignored_commands == 1
         with pytest.raises(KeyError):
             robot.send_action({"agent_x.pos": 1.0})
     finally:
         robot.disconnect()
     stats = json.loads((tmp_path / "stats.json").read_text())
-    assert stats["actions_sent"] == 4 and len(stats["episodes"]) == 1
+    assert stats["actions_sent"] == 3 and len(stats["episodes"]) == 1 and stats["missed_ticks"] == 0
     assert set(stats["episodes"][0]) >= {"max_reward", "success", "steps"}
 
 
-def test_robot_records_missed_ticks_and_action_jumps(tmp_path, monkeypatch):
-    """A gap of 3.4 ticks between actions is 2 missed ticks; the jumps are the target's moves in px."""
-    from lerobot_sdp.robots import pusht_sim
-
-    now = [0.0]
-    monkeypatch.setattr(pusht_sim.time, "perf_counter", lambda: now[0])
-    robot = make_robot(tmp_path)
-    robot.connect()
-    try:  # 10 Hz: one late action, 0.34 s after the previous one
-        for t, x in zip((0.0, 0.1, 0.2, 0.54, 0.64), (100.0, 103.0, 107.0, 107.0, 227.0), strict=True):
+def test_the_env_advances_with_the_wall_clock_and_a_stall_holds_the_last_target(tmp_path, monkeypatch):
+    """10 Hz: an action 0.34 s after the previous one finds 2 ticks passed without one; the env stepped
+    them with the last target (the pusher kept moving towards it) and counts them as missed."""
+    robot, now = clocked(tmp_path, monkeypatch)
+    twin = make_robot(tmp_path / "twin")  # the same start, on the same clock
+    twin.connect()
+    try:
+        for t, x in zip((0.0, 0.1, 0.2), (100.0, 103.0, 107.0), strict=True):
             now[0] = t
-            robot.send_action({"agent_x.pos": x, "agent_y.pos": 200.0})
+            act(robot, x, 200.0)
+            act(twin, x, 200.0)
+        for t in (0.3, 0.4):  # the twin's actions on time: the last target again
+            now[0] = t
+            act(twin, 107.0, 200.0)
+        now[0] = 0.54
+        stalled = robot.get_observation()  # read during the stall: already 2 ticks further
+        assert robot.missed_ticks == 2 and len(robot.rewards) == 5
+        assert stalled == twin.get_observation() and twin.missed_ticks == 0
+        act(robot, 227.0, 200.0)
+        now[0] = 0.64
+        act(robot, 227.0, 200.0)
         stats = robot.stats()
     finally:
         robot.disconnect()
-    assert stats["missed_ticks"] == 2
+        twin.disconnect()
+    assert stats["missed_ticks"] == 2 and stats["current_episode"]["steps"] == 7
     assert stats["action_jump_px"]["max"] == 120.0 and stats["action_jump_px"]["n"] == 4
-    assert stats["action_jump_px"]["p50"] == 3.5  # jumps 3, 4, 0, 120
+    assert stats["action_jump_px"]["p50"] == 3.5  # jumps 3, 4, 120, 0
+
+
+def test_an_action_early_for_its_tick_is_the_next_ticks_target(tmp_path, monkeypatch):
+    robot, now = clocked(tmp_path, monkeypatch)
+    try:
+        act(robot, 100.0, 100.0)
+        now[0] = 0.02
+        act(robot, 300.0, 300.0)  # tick 0 already stepped: nothing steps now
+        assert len(robot.rewards) == 1
+        now[0] = 0.13
+        robot.get_observation()  # within tick 1's window: its action may still come
+        assert len(robot.rewards) == 1
+        now[0] = 0.16
+        robot.get_observation()  # tick 1 passed without an action: it held the early target
+        assert len(robot.rewards) == 2 and robot.missed_ticks == 1
+    finally:
+        robot.disconnect()
 
 
 def test_robot_warns_when_driven_faster_than_real_time(tmp_path, caplog):
@@ -95,6 +137,7 @@ def test_robot_warns_when_driven_faster_than_real_time(tmp_path, caplog):
         with caplog.at_level("WARNING"):
             for _ in range(25):  # back to back, far faster than 10 Hz
                 robot.send_action({"agent_x.pos": 256.0, "agent_y.pos": 256.0})
+        assert len(robot.rewards) <= 2  # early actions replace the target, the env keeps real time
     finally:
         robot.disconnect()
     assert "Pass --fps=10" in caplog.text

@@ -16,19 +16,20 @@ OBS_TYPES = ("environment_state_agent_pos",)
 @RobotConfig.register_subclass("pusht_sim")
 @dataclass(kw_only=True)
 class PushTSimConfig(RobotConfig):
-    """Push-T in simulation. `lerobot-rollout` paces the loop: pass `--fps=10` (Push-T's control rate;
-    the rollout default is 30) so that one `send_action`, one 0.1 s env step, takes 0.1 s of wall time.
+    """Push-T in simulation, in real time. `lerobot-rollout` paces the loop: pass `--fps=10` (Push-T's
+    control rate; the rollout default is 30). The env steps once per 0.1 s tick of the wall clock from
+    the first action on; a tick without an action holds the last target (a missed tick).
 
-    An episode ends on success (coverage > 95 %) or after `episode_length` actions; the env then resets
-    by itself and the rollout goes on. Each episode's reward and success are logged and, with
-    `stats_path`, written as JSON.
+    One episode per connection: it ends on success (coverage > 95 %) or after `episode_length` ticks,
+    and the robot then holds still, so every episode starts with a fresh policy. Its reward, success
+    and missed ticks are logged and, with `stats_path`, written as JSON.
     """
 
     obs_type: str = "environment_state_agent_pos"
     episode_length: int = 300
-    seed: int | None = 0  # seeds the first reset; later episodes draw from the env's RNG
-    fps: int = 10  # the env's control rate, used to warn when actions arrive faster
-    stats_path: Path | None = None  # JSON: actions sent, per-episode reward and success
+    seed: int | None = 0  # the episode's start (block pose), as lerobot-eval's episode seeds
+    fps: int = 10  # the env's control rate: one env step per tick of the wall clock
+    stats_path: Path | None = None  # JSON: actions sent, missed ticks, the episode's reward and success
 
     def __post_init__(self):
         super().__post_init__()

@@ -8,13 +8,21 @@ into `observation.state` (2,) and `observation.environment_state` (16,), the fea
 trained on the converted Push-T dataset. The action is the agent's target position, `agent_x.pos`,
 `agent_y.pos`, in pixels, passed to the env unclipped as `lerobot-eval` does.
 
-`send_action` steps the env once (0.1 s of simulated time) and returns at once: the rollout loop
-paces itself at `--fps`, so the robot must not sleep too. `get_observation` returns the current state.
+Real time: the env advances one step (0.1 s at 10 Hz) per control tick of the wall clock, which
+starts with the episode's first action, whether or not an action arrived. An action steps the
+current tick; a tick that passes without one repeats the last target and counts as a missed tick
+(a policy that stalls costs the robot what it costs on hardware), and an action early for its
+tick becomes the target of the next. Observations are read after the clock is brought up to now.
 
-For comparing inference engines the robot also records, per run, how regularly actions arrived
-(`missed_ticks`: control ticks without an action, from the gaps between actions longer than 1.5
-ticks) and how far the commanded target jumped between consecutive actions (`action_jump_px`: p50,
-p95, max; a chunk boundary that does not join up shows as a jump).
+One episode per connection: it ends on success (coverage > 95 %) or after `episode_length` ticks,
+and the env then holds still (later actions are counted, not applied). So every episode starts
+with a freshly started policy (its buffer and history reset), never from a pusher that jumped to a
+new start under a policy still streaming the last episode. Run one `lerobot-rollout` (or one robot
+client) per episode: `--duration` at least `episode_length / fps` seconds.
+
+For comparing inference engines the robot also records how far the commanded target jumped between
+consecutive actions (`action_jump_px`: p50, p95, max; a chunk boundary that does not join up shows
+as a jump).
 """
 
 import json
@@ -47,13 +55,15 @@ class PushTSim(Robot):
         self._obs: dict[str, float] = {}
         self.actions_sent = 0
         self.ignored_commands = 0
+        self.actions_after_end = 0
         self.episodes: list[dict[str, Any]] = []
-        self.rewards: list[float] = []  # the current episode's rewards
+        self.rewards: list[float] = []  # the episode's rewards, one per tick
         self.last_reward: float | None = None
         self._success = False
+        self._over = False
+        self._t0: float | None = None  # wall time of the episode's first action: tick 0
         self._t_first: float | None = None
         self._pacing_checked = False
-        self._t_last: float | None = None
         self._last_target: np.ndarray | None = None
         self.missed_ticks = 0
         self.action_jumps: list[float] = []
@@ -85,21 +95,39 @@ class PushTSim(Robot):
         from gym_pusht.envs import PushTEnv  # here, not at import: LeRobot imports the config on every start
 
         self._env = PushTEnv(obs_type=self.config.obs_type)
-        self._reset(seed=self.config.seed)
-        logger.info("pusht_sim connected (gym-pusht, %s, %d Hz)", self.config.obs_type, self.config.fps)
-
-    def _reset(self, seed: int | None = None) -> None:
-        obs, _ = self._env.reset(seed=seed)
+        obs, _ = self._env.reset(seed=self.config.seed)
         self._set_obs(obs)
-        self.rewards = []
-        self._success = False
+        logger.info("pusht_sim connected (gym-pusht, %s, %d Hz)", self.config.obs_type, self.config.fps)
 
     def _set_obs(self, obs: dict[str, np.ndarray]) -> None:
         values = np.concatenate([obs["agent_pos"], obs["environment_state"]]).astype(float)
         self._obs = dict(zip(AGENT_KEYS + KEYPOINT_KEYS, values.tolist(), strict=True))
 
+    def _due(self, now: float) -> int:
+        """Control ticks begun by `now` since the first action (the nearest tick: jitter is no miss)."""
+        return round((now - self._t0) * self.config.fps)
+
+    def _catch_up(self, now: float) -> None:
+        """Step every tick that passed without an action, holding the last target."""
+        if self._t0 is None:
+            return
+        while not self._over and len(self.rewards) < self._due(now):
+            self.missed_ticks += 1
+            self._step(self._last_target)
+
+    def _step(self, target: np.ndarray) -> None:
+        obs, reward, terminated, _, info = self._env.step(target)
+        self._set_obs(obs)
+        self.last_reward = float(reward)
+        self.rewards.append(self.last_reward)
+        self._success = self._success or bool(info["is_success"])
+        logger.debug("pusht_sim tick %d: reward %.3f", len(self.rewards), reward)
+        if terminated or len(self.rewards) >= self.config.episode_length:
+            self._end_episode()
+
     @check_if_not_connected
     def get_observation(self) -> dict[str, float]:
+        self._catch_up(time.perf_counter())
         return dict(self._obs)
 
     @check_if_not_connected
@@ -116,41 +144,32 @@ class PushTSim(Robot):
         if missing:
             raise KeyError(f"pusht_sim action lacks {missing}; it takes {list(AGENT_KEYS)}.")
         target = np.array([float(action[k]) for k in AGENT_KEYS])
-        self._record_timing(target)
-        obs, reward, terminated, _, info = self._env.step(target)
-        self._set_obs(obs)
-        self.actions_sent += 1
-        self.last_reward = float(reward)
-        self.rewards.append(self.last_reward)
-        self._success = self._success or bool(info["is_success"])
-        logger.debug("pusht_sim step %d: reward %.3f", len(self.rewards), reward)
-        self._check_pacing()
-        if terminated or len(self.rewards) >= self.config.episode_length:
-            self._end_episode()
-            self._reset()
-        return dict(zip(AGENT_KEYS, target.tolist(), strict=True))
-
-    def _record_timing(self, target: np.ndarray) -> None:
-        """Missed control ticks (an action gap of more than 1.5 ticks) and the jump from the last
-        target. Episode resets do not break the record: the pusher stays where it was."""
-        now, tick = time.perf_counter(), 1.0 / self.config.fps
-        if self._t_last is not None and now - self._t_last > 1.5 * tick:
-            self.missed_ticks += round((now - self._t_last) / tick) - 1
+        if self._over:
+            self.actions_after_end += 1
+            return {k: self._obs[k] for k in AGENT_KEYS}
+        now = time.perf_counter()
+        if self._t0 is None:
+            self._t0 = now
+        self._catch_up(now)
         if self._last_target is not None:
             self.action_jumps.append(float(np.linalg.norm(target - self._last_target)))
-        self._t_last, self._last_target = now, target
+        self._last_target = target
+        self.actions_sent += 1
+        if not self._over and len(self.rewards) <= self._due(now):  # else early: the next tick's target
+            self._step(target)
+        self._check_pacing(now)
+        return dict(zip(AGENT_KEYS, target.tolist(), strict=True))
 
-    def _check_pacing(self) -> None:
-        now = time.perf_counter()
+    def _check_pacing(self, now: float) -> None:
         if self._t_first is None:
             self._t_first = now
         elif not self._pacing_checked and self.actions_sent > PACING_CHECK_AFTER:
             self._pacing_checked = True
-            rate = (self.actions_sent - 1) / (now - self._t_first)
+            rate = (self.actions_sent - 1) / max(now - self._t_first, 1e-9)
             if rate > 1.5 * self.config.fps:
                 logger.warning(
-                    "pusht_sim receives actions at %.0f Hz, Push-T runs at %d Hz: the simulation runs "
-                    "faster than real time. Pass --fps=%d to lerobot-rollout.",
+                    "pusht_sim receives actions at %.0f Hz, Push-T runs at %d Hz: actions early for their "
+                    "tick only replace the target. Pass --fps=%d to lerobot-rollout.",
                     rate,
                     self.config.fps,
                     self.config.fps,
@@ -166,12 +185,14 @@ class PushTSim(Robot):
         }
 
     def _end_episode(self) -> None:
+        self._over = True
         summary = self._episode_summary()
         self.episodes.append(summary)
         logger.info(
-            "pusht_sim episode %d: %d steps, max reward %.3f, success %s",
-            len(self.episodes),
+            "pusht_sim episode over: %d ticks (%d missed), max reward %.3f, success %s. The robot now "
+            "holds still: one episode per run.",
             summary["steps"],
+            self.missed_ticks,
             summary["max_reward"],
             summary["success"],
         )
@@ -181,6 +202,7 @@ class PushTSim(Robot):
         """Actions sent, finished episodes, and the episode under way (reward and success so far)."""
         return {
             "actions_sent": self.actions_sent,
+            "actions_after_end": self.actions_after_end,
             "ignored_commands": self.ignored_commands,
             "missed_ticks": self.missed_ticks,
             "action_jump_px": jump_stats(self.action_jumps),
@@ -198,10 +220,11 @@ class PushTSim(Robot):
     def disconnect(self) -> None:
         current = self._episode_summary()
         logger.info(
-            "pusht_sim disconnected after %d actions, %d finished episodes; episode under way: %d steps, "
-            "max reward %.3f, success %s",
+            "pusht_sim disconnected after %d actions (%d missed ticks); episode %s: %d ticks, max reward "
+            "%.3f, success %s",
             self.actions_sent,
-            len(self.episodes),
+            self.missed_ticks,
+            "over" if self._over else "under way",
             current["steps"],
             current["max_reward"],
             current["success"],
