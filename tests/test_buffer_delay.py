@@ -61,7 +61,7 @@ def streamed(kind: str = "DDIM"):
 
 @pytest.mark.parametrize("d", [1, 2, 3])
 def test_the_chunk_after_the_committed_actions_is_returned_and_the_stream_goes_on(d):
-    buffer, _, truth, oracle, first = streamed()
+    buffer, _, truth, oracle, _ = streamed()
     # The call's observation is at time TB - d + N_PAST (d actions of the first chunk still to run):
     # the window's slot 0 is the action before it.
     oracle.offset, oracle.calls = TB - d, []
@@ -134,7 +134,7 @@ def test_committed_beyond_max_delay_or_before_any_chunk_is_refused():
 
 @pytest.mark.parametrize("d", [0, 2])
 def test_a_clear_during_a_call_is_not_undone_when_the_call_ends(d):
-    buffer, _, truth, oracle, _ = streamed()
+    buffer, _, _, oracle, _ = streamed()
     oracle.offset = TB - d
 
     def clearing(sample, timesteps):

@@ -392,7 +392,7 @@ def test_delay_ready_policy_at_zero_delay_is_the_plain_stream():
 def test_committed_actions_need_a_policy_trained_for_them():
     policy = SDPPolicy(tiny_config()).eval()
     policy.predict_action_chunk(history(policy.config))
-    with pytest.raises(ValueError, match="max_delay=0.*--policy.max_delay"):
+    with pytest.raises(ValueError, match=r"max_delay=0.*--policy\.max_delay"):
         policy.predict_action_chunk(history(policy.config), committed=1)
 
 

@@ -154,7 +154,7 @@ class ClientClock:
         self.executed, self.stalls = -1, 0
 
     def tick(self, now: int) -> None:
-        for arrival, t, actions in [r for r in self.in_flight if r[0] <= now]:
+        for _, t, actions in [r for r in self.in_flight if r[0] <= now]:
             self.queue.update({t + i: a for i, a in enumerate(actions[0]) if t + i > self.executed})
         self.in_flight = [r for r in self.in_flight if r[0] > now]
         if self.executed + 1 in self.queue:

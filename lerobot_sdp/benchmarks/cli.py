@@ -10,7 +10,7 @@ from types import ModuleType
 
 from lerobot.utils.utils import init_logging
 
-from . import compiled, deployment, latency, quality, throughput, train_profile
+from . import compiled, delay, deployment, latency, quality, throughput, train_profile
 
 SUBCOMMANDS: dict[str, ModuleType] = {
     "latency": latency,
@@ -19,6 +19,7 @@ SUBCOMMANDS: dict[str, ModuleType] = {
     "train-profile": train_profile,
     "throughput": throughput,
     "deployment": deployment,
+    "delay": delay,
 }
 
 
