@@ -135,10 +135,8 @@ class SDPModel(DiffusionModel):
         levels = sample_levels(self.config.noise_schemes, trajectory.shape[0], self.geometry, self.schedule)
         levels, committed = sample_delays(levels, self.geometry)
         eps = torch.randn_like(trajectory)
-        noisy = self.schedule.add_noise(trajectory, eps, levels)
-        if committed is not None:  # exactly clean (DDIM's clean-end abar may be below 1)
-            noisy = torch.where(committed.unsqueeze(-1), trajectory, noisy)
-        pred = self.unet(noisy, levels, global_cond=global_cond)
+        # committed slots (timestep -1) come out clean: abar is 1 there (DDPM, and DDIM's set_alpha_to_one)
+        pred = self.unet(self.schedule.add_noise(trajectory, eps, levels), levels, global_cond=global_cond)
         target = eps if self.config.prediction_type == "epsilon" else trajectory
         loss = F.mse_loss(pred, target, reduction="none")
         mask = None if committed is None else ~committed.unsqueeze(-1)  # committed slots are inputs only
