@@ -10,11 +10,12 @@ time spent stopped between sessions never counts.
 
 import itertools
 import json
-import math
 import re
 import statistics
 from datetime import datetime
 from pathlib import Path
+
+from .episodes import figures
 
 STEP_LOG = re.compile(r"(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d) .*?\bstep:(\d+(?:\.\d+)?[KM]?) ")
 # lerobot-train's progress bar, printed on the same line just before a step log: "2000/18000 [07:45<...]"
@@ -74,28 +75,20 @@ def checkpoint_steps(train_dir: Path, every: int) -> list[int]:
 
 
 def episode_stats(eval_dir: Path) -> dict:
-    """avg_max_reward with its standard error over episodes, pc_success with its binomial s.e."""
+    """avg_max_reward and pc_success with their standard errors, from lerobot-eval's eval_info.json."""
     info = json.loads((eval_dir / "eval_info.json").read_text())
     max_rewards, successes = [], []
     for task in info.get("per_task", []):
         max_rewards += task["metrics"]["max_rewards"]
         successes += task["metrics"]["successes"]
-    n = len(max_rewards)
-    overall = info["overall"]
-    if n < 2:
+    if len(max_rewards) < 2:
+        overall = info["overall"]
         return {
             "avg_max_reward": overall["avg_max_reward"],
             "pc_success": overall["pc_success"],
-            "n_episodes": n,
+            "n_episodes": len(max_rewards),
         }
-    p = sum(map(bool, successes)) / n
-    return {
-        "avg_max_reward": statistics.fmean(max_rewards),
-        "avg_max_reward_se": statistics.stdev(max_rewards) / math.sqrt(n),
-        "pc_success": 100 * p,
-        "pc_success_se": 100 * math.sqrt(p * (1 - p) / n),
-        "n_episodes": n,
-    }
+    return figures(max_rewards, successes)
 
 
 def plot(rows: dict[str, dict], path: Path, title: str) -> None:

@@ -30,6 +30,7 @@ from lerobot.scripts.lerobot_eval import eval_policy
 from tqdm import tqdm
 
 from ..pusht.job import EVAL_SEED, OBS_TYPE
+from .episodes import figures
 from .stream_cost import load_policy, stream_cost
 from .virtual_clock import DelayedControl, mode_problem
 
@@ -108,27 +109,12 @@ def evaluate(policy, path: Path, mode: str, delay: int, args: argparse.Namespace
     finally:
         env.close()
     return {
-        **episode_figures(info["per_episode"]),
+        **figures(
+            [e["max_reward"] for e in info["per_episode"]], [e["success"] for e in info["per_episode"]]
+        ),
         "chunks": control.chunks,
         "held_ticks": control.held_ticks,
         "wall_s": round(time.monotonic() - start, 1),
-    }
-
-
-def episode_figures(per_episode: list[dict]) -> dict:
-    """avg_max_reward with its standard error, pc_success with its binomial standard error."""
-    rewards = [e["max_reward"] for e in per_episode]
-    successes = [bool(e["success"]) for e in per_episode]
-    n = len(rewards)
-    mean = sum(rewards) / n
-    sd = math.sqrt(sum((r - mean) ** 2 for r in rewards) / (n - 1)) if n > 1 else 0.0
-    p = sum(successes) / n
-    return {
-        "avg_max_reward": mean,
-        "avg_max_reward_se": sd / math.sqrt(n),
-        "pc_success": 100 * p,
-        "pc_success_se": 100 * math.sqrt(p * (1 - p) / n),
-        "n_episodes": n,
     }
 
 

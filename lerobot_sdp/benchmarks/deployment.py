@@ -1,21 +1,23 @@
-"""Deployment on the simulated robot: lerobot-rollout (sync, RTC) and async inference, per policy.
+"""Deployment on the simulated robot in real time: lerobot-rollout (sync, RTC) and async inference.
 
-    lerobot-sdp-bench deployment --policy sdp_h2=PATH/pretrained_model --policy dp=PATH/pretrained_model \\
-        --duration 60 --output_dir outputs/benchmarks/deployment
+    lerobot-sdp-bench deployment --policy sdp=PATH/pretrained_model --policy dp=PATH/pretrained_model \\
+        --episodes 20 --output_dir outputs/benchmarks/deployment
 
-Each policy drives `pusht_sim` (Push-T at 10 Hz, first episode seeded) for `--duration` seconds under
-each engine of `--engines`, through the real CLIs: `lerobot-rollout` for `sync` and `rtc`
-(`--inference.queue_threshold=--rtc_threshold`), and for `async` the plugin's
-`lerobot-sdp-policy-server` with LeRobot's `robot_client` (stopped by SIGINT, as Ctrl-C does, once
-`--duration` seconds have passed since its control loop started). The robot records the actions it
-received, the control ticks that passed without one (missed ticks), how far the commanded target
-jumped between consecutive actions, and each episode's max reward.
+Each policy drives `pusht_sim` (Push-T at 10 Hz in real time: the env steps every 0.1 s of the wall
+clock, a tick without an action holds the last target) under each engine of `--engines`, through
+the real CLIs: `lerobot-rollout` for `sync` and `rtc` (`--inference.queue_threshold=--rtc_threshold`),
+and for `async` the plugin's `lerobot-sdp-policy-server` with LeRobot's `robot_client`. One episode
+per run (`pusht_sim` runs one episode per connection, so every episode starts with a fresh policy),
+episode i seeded `--seed` + i, the same seeds for every row; a run is stopped with SIGINT, as Ctrl-C
+does, once its episode is over. Per row: avg_max_reward and success with standard errors, missed
+control ticks per episode, how far the commanded target jumped between consecutive actions.
 
 A policy LeRobot cannot run under an engine (RTC needs `supports_rtc()`) gets a row that says so; a
-run that fails gets its error and the path of its log. Output: OUTPUT_DIR/results.json and
-results.md; every run's console in OUTPUT_DIR/logs/. Run it as the only heavy process on the machine:
-inference time is what it measures. Checkpoints with a keypoint (environment-state) input need SDP's
-`sdp_split_state` preprocessor step (`python -m lerobot_sdp.robots.prepare_policy DIR` adds it).
+run that fails gets its error and the path of its log. Output: OUTPUT_DIR/results.json (written
+after every episode) and results.md; every run's console in OUTPUT_DIR/logs/. Run it as the only
+heavy process on the machine: inference time is what it measures. Checkpoints with a keypoint
+(environment-state) input need SDP's `sdp_split_state` preprocessor step
+(`python -m lerobot_sdp.robots.prepare_policy DIR` adds it).
 """
 
 import argparse
@@ -32,6 +34,8 @@ from lerobot.configs.policies import PreTrainedConfig
 
 from ..lerobot_cli import lerobot_bin, let_sigint_reach_children, subprocess_env
 from ..processor_sdp import lacks_split_state_step
+from ..pusht.job import EVAL_SEED
+from .episodes import figures
 
 ENGINES = ("sync", "rtc", "async")
 FPS = 10
@@ -47,8 +51,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="a pretrained_model folder, named for the table (repeat for each policy)",
     )
     p.add_argument("--engines", nargs="+", default=list(ENGINES), choices=ENGINES)
-    p.add_argument("--duration", type=int, default=60, help="seconds per run")
-    p.add_argument("--rtc_threshold", type=int, default=5, help="--inference.queue_threshold for rtc")
+    p.add_argument("--episodes", type=int, default=20, help="episodes per policy and engine")
+    p.add_argument("--seed", type=int, default=EVAL_SEED, help="episode i starts from seed + i")
+    p.add_argument("--episode_length", type=int, default=300, help="ticks per episode (Push-T: 300)")
+    p.add_argument(
+        "--rtc_threshold",
+        type=int,
+        default=2,
+        help="--inference.queue_threshold for rtc: the inference time in ticks, at most max_delay",
+    )
     p.add_argument("--port", type=int, default=8080, help="the async policy server's port (loopback)")
     p.add_argument("--output_dir", type=Path, default=Path("outputs/benchmarks/deployment"))
 
@@ -75,15 +86,20 @@ def robot_ready_problem(path: Path) -> str | None:
     )
 
 
-def rollout_cmd(
-    path: Path, stats: Path, calibration: Path, duration: int, rtc_threshold: int | None
-) -> list[str]:
-    cmd = [
-        lerobot_bin("lerobot-rollout"),
+def robot_args(stats: Path, calibration: Path, seed: int, episode_length: int) -> list[str]:
+    return [
         "--robot.type=pusht_sim",
         f"--robot.stats_path={stats}",
         f"--robot.calibration_dir={calibration}",
-        "--robot.seed=0",
+        f"--robot.seed={seed}",
+        f"--robot.episode_length={episode_length}",
+    ]
+
+
+def rollout_cmd(path: Path, robot: list[str], duration: int, rtc_threshold: int | None) -> list[str]:
+    cmd = [
+        lerobot_bin("lerobot-rollout"),
+        *robot,
         f"--policy.path={path}",
         f"--fps={FPS}",
         f"--duration={duration}",
@@ -95,15 +111,12 @@ def rollout_cmd(
     return cmd
 
 
-def client_cmd(path: Path, config: PreTrainedConfig, stats: Path, calibration: Path, port: int) -> list[str]:
+def client_cmd(path: Path, config: PreTrainedConfig, robot: list[str], port: int) -> list[str]:
     return [
         sys.executable,
         "-m",
         "lerobot.async_inference.robot_client",
-        "--robot.type=pusht_sim",
-        f"--robot.stats_path={stats}",
-        f"--robot.calibration_dir={calibration}",
-        "--robot.seed=0",
+        *robot,
         f"--server_address=127.0.0.1:{port}",
         f"--policy_type={config.type}",
         f"--pretrained_name_or_path={path}",
@@ -155,105 +168,118 @@ def wait_for_port(port: int, proc: subprocess.Popen, timeout: float = 120) -> No
     raise RuntimeError(f"the policy server did not listen on port {port} within {timeout:.0f} s")
 
 
-def run_async(
-    path: Path, config: PreTrainedConfig, stats: Path, calibration: Path, log_dir: Path, name: str, args
-) -> None:
+def episode_over(stats: Path) -> bool:
+    try:
+        return bool(json.loads(stats.read_text())["episodes"])
+    except (FileNotFoundError, json.JSONDecodeError):  # not written yet, or being written
+        return False
+
+
+def until_episode_over(run: "Logged", stats: Path, timeout: float) -> None:
+    """Wait for the robot to finish its episode (or the process to end, or `timeout`), then stop it."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end and run.proc.poll() is None and not episode_over(stats):
+        time.sleep(0.25)
+    rc = run.stop()
+    if not episode_over(stats):
+        why = f"exited with code {rc}" if time.monotonic() < end else f"ran {timeout:.0f} s"
+        raise RuntimeError(f"the episode did not end: the run {why}")
+
+
+def one_episode(path: Path, config: PreTrainedConfig, engine: str, i: int, args, server_port: int | None):
+    """Run episode i of one row; returns the robot's stats."""
+    name = f"{args.row_name}_{engine}_{i:03d}"
+    stats = args.output_dir / "stats" / f"{name}.json"
+    stats.unlink(missing_ok=True)
+    robot = robot_args(stats, args.output_dir / "calibration", args.seed + i, args.episode_length)
+    episode_s = args.episode_length / FPS
+    log = args.output_dir / "logs" / f"{name}.log"
+    if engine == "async":
+        run = Logged(client_cmd(path, config, robot, server_port), log, CLIENT_READY)
+    else:
+        threshold = args.rtc_threshold if engine == "rtc" else None
+        run = Logged(rollout_cmd(path, robot, int(episode_s) + 60, threshold), log)
+    try:
+        until_episode_over(run, stats, timeout=episode_s + 180)  # model loading included
+    except RuntimeError as e:
+        raise RuntimeError(f"{e}; see {log}") from None
+    return json.loads(stats.read_text())
+
+
+def start_server(args, log: Path) -> "Logged":
     server_cmd = [
         lerobot_bin("lerobot-sdp-policy-server"),
         "--host=127.0.0.1",
         f"--port={args.port}",
         f"--fps={FPS}",
+        "--session_timeout_s=5",  # one client per episode: the last one's session frees its slot soon
     ]
-    server = Logged(server_cmd, log_dir / f"{name}_async_server.log")
-    try:
-        wait_for_port(args.port, server.proc)
-        client = Logged(
-            client_cmd(path, config, stats, calibration, args.port),
-            log_dir / f"{name}_async.log",
-            CLIENT_READY,
-        )
-        try:
-            if not client.seen.wait(timeout=180):
-                raise RuntimeError("the robot client did not start its control loop within 180 s")
-            time.sleep(args.duration)
-        finally:
-            client.stop()
-    finally:
-        server.stop(signal.SIGTERM)
+    server = Logged(server_cmd, log)
+    wait_for_port(args.port, server.proc)
+    return server
 
 
-def summarise(stats: dict) -> dict:
-    episodes = [*stats["episodes"], stats["current_episode"]]
+def summarise(episodes: list[dict]) -> dict:
+    finished = [s["episodes"][0] for s in episodes]
+    jumps = [s["action_jump_px"]["p95"] for s in episodes if s["action_jump_px"]]
     return {
-        "actions_sent": stats["actions_sent"],
-        "missed_ticks": stats["missed_ticks"],
-        "action_jump_px": stats["action_jump_px"],
-        "episode_max_rewards": [round(e["max_reward"], 3) for e in episodes if e["steps"]],
-        "episode_steps": [e["steps"] for e in episodes if e["steps"]],
-        "successes": sum(bool(e["success"]) for e in episodes),
+        **figures([e["max_reward"] for e in finished], [e["success"] for e in finished]),
+        "missed_ticks_per_episode": sum(s["missed_ticks"] for s in episodes) / len(episodes),
+        "missed_ticks_max": max(s["missed_ticks"] for s in episodes),
+        "action_jump_p95_px_median": sorted(jumps)[len(jumps) // 2] if jumps else None,
+        "episode_steps": [e["steps"] for e in finished],
     }
 
 
 def measure(name: str, path: Path, engine: str, args) -> dict:
-    row = {"policy": name, "path": str(path), "engine": engine, "duration_s": args.duration}
+    row = {
+        "policy": name,
+        "path": str(path),
+        "engine": engine,
+        "seeds": [args.seed, args.seed + args.episodes - 1],
+    }
     config = PreTrainedConfig.from_pretrained(path)
     if engine == "rtc" and config.type != "sdp":
         return row | {
             "error": f"not run: LeRobot's `{config.type}` policy has no RTC support (supports_rtc())"
         }
-    log_dir = args.output_dir / "logs"
-    log_dir.mkdir(parents=True, exist_ok=True)
-    stats_path = args.output_dir / "stats" / f"{name}_{engine}.json"
-    stats_path.unlink(missing_ok=True)
-    calibration = args.output_dir / "calibration"
-    log = log_dir / f"{name}_{engine}.log"
-    started = time.monotonic()
+    (args.output_dir / "logs").mkdir(parents=True, exist_ok=True)
+    args.row_name = name
+    started, episodes = time.monotonic(), []
+    server = (
+        start_server(args, args.output_dir / "logs" / f"{name}_async_server.log")
+        if engine == "async"
+        else None
+    )
     try:
-        if engine == "async":
-            run_async(path, config, stats_path, calibration, log_dir, name, args)
-        else:
-            threshold = args.rtc_threshold if engine == "rtc" else None
-            rollout = Logged(rollout_cmd(path, stats_path, calibration, args.duration, threshold), log)
-            try:
-                rollout.proc.wait(timeout=args.duration + 600)  # model loading and shutdown included
-            except subprocess.TimeoutExpired:
-                raise RuntimeError(
-                    f"lerobot-rollout still ran {args.duration + 600} s after its start"
-                ) from None
-            finally:
-                rc = rollout.stop()
-            if rc != 0:
-                raise RuntimeError(f"lerobot-rollout exited with code {rc}")
+        for i in range(args.episodes):
+            episodes.append(one_episode(path, config, engine, i, args, args.port))
+            print(f"[deployment] {name} / {engine}: episode {i + 1}/{args.episodes}", flush=True)
     except RuntimeError as e:
-        return row | {"error": f"{e}; see {log}"}
+        row["error"] = f"episode {len(episodes)}: {e}"
+    finally:
+        if server is not None:
+            server.stop(signal.SIGTERM)
     row["wall_s"] = round(time.monotonic() - started, 1)
-    if not stats_path.exists():
-        return row | {"error": f"the robot wrote no stats; see {log}"}
-    row |= summarise(json.loads(stats_path.read_text()))
-    if not row["actions_sent"]:  # e.g. the policy fails on every observation: the reason is in the logs
-        row["error"] = (
-            f"the robot received no action in {args.duration} s; see {log_dir / f'{name}_{engine}'}*.log"
-        )
-    return row
+    return row | (summarise(episodes) if episodes else {})
 
 
 def markdown(rows: list[dict]) -> str:
     out = [
-        "| policy | engine | actions sent | missed control ticks | target jump p50 / p95 / max (px) | "
-        "max reward per episode (steps) |",
-        "|" + "---|" * 6,
+        "| policy | engine | episodes | avg_max_reward | success % | missed ticks / episode (max) | "
+        "target jump p95 (px, median episode) |",
+        "|" + "---|" * 7,
     ]
     for r in rows:
-        if "error" in r:
-            out.append(f"| {r['policy']} | {r['engine']} | {r['error']} | | | |")
+        if "avg_max_reward" not in r:
+            out.append(f"| {r['policy']} | {r['engine']} | {r.get('error', '')} | | | | |")
             continue
-        j = r["action_jump_px"] or {"p50": 0.0, "p95": 0.0, "max": 0.0}
-        episodes = ", ".join(
-            f"{m:.3f} ({s})" for m, s in zip(r["episode_max_rewards"], r["episode_steps"], strict=True)
-        )
+        jump = r["action_jump_p95_px_median"]
         out.append(
-            f"| {r['policy']} | {r['engine']} | {r['actions_sent']} | {r['missed_ticks']} | "
-            f"{j['p50']:.1f} / {j['p95']:.1f} / {j['max']:.1f} | {episodes} |"
+            f"| {r['policy']} | {r['engine']} | {r['n_episodes']} | {r['avg_max_reward']:.3f} ± "
+            f"{r['avg_max_reward_se']:.3f} | {r['pc_success']:.0f} ± {r['pc_success_se']:.0f} | "
+            f"{r['missed_ticks_per_episode']:.1f} ({r['missed_ticks_max']}) | "
+            f"{'' if jump is None else f'{jump:.1f}'} |" + (f" {r['error']}" if "error" in r else "")
         )
     return "\n".join(out) + "\n"
 
@@ -268,7 +294,7 @@ def run(args: argparse.Namespace) -> list[dict]:
     rows = []
     for name, path in policies.items():
         for engine in args.engines:
-            print(f"[deployment] {name} / {engine}: {args.duration} s on pusht_sim", flush=True)
+            print(f"[deployment] {name} / {engine}: {args.episodes} episodes on pusht_sim", flush=True)
             rows.append(measure(name, path, engine, args))
             (args.output_dir / "results.json").write_text(json.dumps({"fps": FPS, "rows": rows}, indent=2))
     table = markdown(rows)
