@@ -56,6 +56,7 @@ class PushTSim(Robot):
         self.actions_sent = 0
         self.ignored_commands = 0
         self.actions_after_end = 0
+        self.early_actions = 0  # actions that came before their tick: they only replaced the target
         self.episodes: list[dict[str, Any]] = []
         self.rewards: list[float] = []  # the episode's rewards, one per tick
         self.last_reward: float | None = None
@@ -144,19 +145,21 @@ class PushTSim(Robot):
         if missing:
             raise KeyError(f"pusht_sim action lacks {missing}; it takes {list(AGENT_KEYS)}.")
         target = np.array([float(action[k]) for k in AGENT_KEYS])
-        if self._over:
-            self.actions_after_end += 1
-            return {k: self._obs[k] for k in AGENT_KEYS}
         now = time.perf_counter()
         if self._t0 is None:
             self._t0 = now
         self._catch_up(now)
+        if self._over:  # finished before, or by the ticks held just now
+            self.actions_after_end += 1
+            return {k: self._obs[k] for k in AGENT_KEYS}
         if self._last_target is not None:
             self.action_jumps.append(float(np.linalg.norm(target - self._last_target)))
         self._last_target = target
         self.actions_sent += 1
-        if not self._over and len(self.rewards) <= self._due(now):  # else early: the next tick's target
+        if len(self.rewards) <= self._due(now):
             self._step(target)
+        else:
+            self.early_actions += 1  # this tick already ran: the action is the next tick's target
         self._check_pacing(now)
         return dict(zip(AGENT_KEYS, target.tolist(), strict=True))
 
@@ -203,6 +206,7 @@ class PushTSim(Robot):
         return {
             "actions_sent": self.actions_sent,
             "actions_after_end": self.actions_after_end,
+            "early_actions": self.early_actions,
             "ignored_commands": self.ignored_commands,
             "missed_ticks": self.missed_ticks,
             "action_jump_px": jump_stats(self.action_jumps),
