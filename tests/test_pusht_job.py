@@ -74,7 +74,9 @@ def test_resumed_session_keeps_reused_stage_times_and_adds_resumed_ones(tmp_path
 def test_sdp_geometry_of_the_main_jobs_config():
     config = json.loads((REPO / "configs" / "pusht_state_cpu.json").read_text())
     line = sdp_geometry(config, "cpu")
-    assert line.startswith("SDP geometry: horizon=36 (1 past + 4 chunks x 8 + 3 padding)")
+    assert line.startswith(
+        "SDP geometry: horizon=40 (1 past + room for 6 committed + 4 chunks x 8 + 1 padding)"
+    )
     assert "4 denoiser calls per chunk (N = 16, h = 4)" in line
     assert sdp_geometry({"policy": {"type": "diffusion"}}, "cpu") is None
 
@@ -120,6 +122,7 @@ def test_main_job_then_resume_keeps_the_first_runs_timings(tmp_path, monkeypatch
         "num_train_timesteps": 10,
         "num_inference_steps": 10,
         "scheduler_warmup_steps": 0,
+        "max_delay": 1,  # fits the padding
     }
     config |= {"steps": 2, "batch_size": 4, "log_freq": 1}
     config_path = tmp_path / "tiny.json"
@@ -139,7 +142,10 @@ def test_main_job_then_resume_keeps_the_first_runs_timings(tmp_path, monkeypatch
     job.main(argv)
     first_out = capsys.readouterr().out
     first = json.loads((out_dir / "summary.json").read_text())
-    geometry = "SDP geometry: horizon=10 (1 past + 2 chunks x 4 + 1 padding), 5 denoiser calls per chunk"
+    geometry = (
+        "SDP geometry: horizon=10 (1 past + room for 1 committed + 2 chunks x 4 + 0 padding), "
+        "5 denoiser calls per chunk"
+    )
     assert geometry in first_out
     assert first_out.index(geometry) < first_out.index("lerobot-train")  # printed before training
     assert "ms per chunk" in first_out and "checkpoints/last/pretrained_model" in first_out
