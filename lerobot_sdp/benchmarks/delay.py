@@ -31,6 +31,7 @@ from tqdm import tqdm
 
 from ..pusht.job import EVAL_SEED, OBS_TYPE
 from .episodes import figures
+from .policy_args import add_policy_argument, parse_policies
 from .stream_cost import load_policy, stream_cost
 from .virtual_clock import DelayedControl, mode_problem
 
@@ -41,13 +42,7 @@ MODES_OF = {"diffusion": ("blocking", "naive_async"), "sdp": ("naive_async", "de
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--policy",
-        action="append",
-        required=True,
-        metavar="NAME=PATH",
-        help="a trained pretrained_model folder (LeRobot diffusion or SDP), named for the table; repeat",
-    )
+    add_policy_argument(p)
     p.add_argument("--delays", type=int, nargs="+", default=list(DELAYS), help="inference delays (ticks)")
     p.add_argument("--n_episodes", type=int, default=100)
     p.add_argument("--batch_size", type=int, default=50, help="envs stepped together")
@@ -58,18 +53,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     group = p.add_mutually_exclusive_group()
     group.add_argument("--resume", action="store_true", help="keep the cells already in results.json")
     group.add_argument("--overwrite", action="store_true", help="start results.json over")
-
-
-def parse_policies(specs: list[str]) -> dict[str, Path]:
-    policies = {}
-    for spec in specs:
-        name, sep, path = spec.partition("=")
-        if not sep or not name or not path:
-            raise SystemExit(f"--policy takes NAME=PATH, got {spec!r}.")
-        if not (Path(path) / "config.json").exists():
-            raise SystemExit(f"--policy {name}: {path} holds no config.json (a pretrained_model folder?).")
-        policies[name] = Path(path)
-    return policies
 
 
 def rows_of(name: str, policy) -> list[tuple[str, str]]:

@@ -36,6 +36,7 @@ from ..lerobot_cli import lerobot_bin, let_sigint_reach_children, subprocess_env
 from ..processor_sdp import lacks_split_state_step
 from ..pusht.job import EVAL_SEED
 from .episodes import figures
+from .policy_args import add_policy_argument, parse_policies
 
 ENGINES = ("sync", "rtc", "async")
 FPS = 10
@@ -43,13 +44,7 @@ CLIENT_READY = "Control loop thread starting"  # LeRobot's robot_client log line
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--policy",
-        action="append",
-        required=True,
-        metavar="NAME=PATH",
-        help="a pretrained_model folder, named for the table (repeat for each policy)",
-    )
+    add_policy_argument(p)
     p.add_argument("--engines", nargs="+", default=list(ENGINES), choices=ENGINES)
     p.add_argument("--episodes", type=int, default=20, help="episodes per policy and engine")
     p.add_argument("--seed", type=int, default=EVAL_SEED, help="episode i starts from seed + i")
@@ -62,18 +57,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--port", type=int, default=8080, help="the async policy server's port (loopback)")
     p.add_argument("--output_dir", type=Path, default=Path("outputs/benchmarks/deployment"))
-
-
-def parse_policies(specs: list[str]) -> dict[str, Path]:
-    policies = {}
-    for spec in specs:
-        name, sep, path = spec.partition("=")
-        if not sep or not name or not path:
-            raise SystemExit(f"--policy takes NAME=PATH (a pretrained_model folder), got {spec!r}.")
-        if not (Path(path) / "config.json").exists():
-            raise SystemExit(f"--policy {name}: {path} has no config.json; pass a pretrained_model folder.")
-        policies[name] = Path(path)
-    return policies
 
 
 def robot_ready_problem(path: Path) -> str | None:
