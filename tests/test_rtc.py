@@ -105,3 +105,59 @@ def test_a_delay_trained_policy_denoises_the_rtc_leftover_as_committed_slots():
     three = _normalize_prev_actions_length(torch.rand(3, 2) + 0.1, target_steps=horizon)
     with pytest.raises(ValueError, match=r"queue_threshold=K` with K <= 2"):
         policy.predict_action_chunk(frame(cfg, 4), inference_delay=1, prev_chunk_left_over=three)
+
+
+@pytest.mark.parametrize("max_delay", [0, 2])
+def test_on_the_engines_clock_each_chunk_starts_threshold_ticks_after_its_observation(max_delay):
+    """LeRobot's RTC engine on a simulated clock, with its own ActionQueue: the call starts when
+    `queue_threshold` (K = 2) actions are left, takes d = 2 ticks, and its result replaces the queue
+    after the d actions that ran meanwhile. Each new chunk's first action runs K ticks after the
+    observation it was built from, the robot never waits, and a policy trained with max_delay is
+    told (its chunk is the one denoised with those K actions committed)."""
+    k = d = 2
+    horizon = 10
+    cfg = tiny_config(max_delay=max_delay)
+    policy = SDPPolicy(cfg).eval()
+    reference = SDPPolicy(cfg).eval()
+    reference.load_state_dict(policy.state_dict())
+    queue = ActionQueue(RTCConfig(execution_horizon=horizon))
+    pending, calls, ran = None, [], []
+    torch.manual_seed(0)
+    for tick in range(40):
+        if pending is not None and pending[0] == tick:
+            _, result, index_before = pending
+            queue.merge(result[0], result[0], real_delay=d, action_index_before_inference=index_before)
+            pending = None
+        if pending is None and queue.qsize() <= k:
+            left = queue.get_left_over()
+            padded = None if left is None else _normalize_prev_actions_length(left, target_steps=horizon)
+            result = policy.predict_action_chunk(
+                frame(cfg, tick), inference_delay=d, prev_chunk_left_over=padded
+            )
+            n_left = 0 if left is None else len(left)
+            calls.append((tick, n_left, result[0, n_left].clone()))  # the new chunk's first action
+            ready = tick + (d if left is not None else 0)
+            pending = (ready, result, queue.get_action_index())
+            if ready == tick:
+                queue.merge(result[0], result[0], real_delay=0)
+                pending = None
+        ran.append(queue.get())
+    assert all(a is not None for a in ran)  # never a tick without an action
+    assert len(calls) >= 8
+    for tick, n_left, first in calls[1:]:
+        assert n_left == k
+        if tick + n_left < len(ran):
+            assert torch.equal(ran[tick + n_left], first)  # observation at `tick`, its chunk from tick + K
+
+    def history(seed):
+        return {
+            k_: v.unsqueeze(1).expand(-1, cfg.n_obs_steps, *v.shape[1:])
+            for k_, v in observation(cfg, 1, seed=seed).items()
+        }
+
+    torch.manual_seed(0)
+    expected = [reference.predict_action_chunk(history(calls[0][0]))]
+    for tick, n_left, _ in calls[1:]:
+        expected.append(reference.predict_action_chunk(history(tick), committed=n_left if max_delay else 0))
+    for (_, _, first), chunk in zip(calls, expected, strict=True):
+        torch.testing.assert_close(first, chunk[0, 0])
