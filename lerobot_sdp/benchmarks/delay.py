@@ -18,6 +18,7 @@ delay.png (both against d, the measured delays marked).
 import argparse
 import json
 import math
+import os
 import platform
 import time
 from pathlib import Path
@@ -114,6 +115,16 @@ def measured_delay(path: Path, num_threads: int) -> dict:
     return {**cost, "delay_ticks": math.ceil(ms / (1000 / FPS)), "num_threads": num_threads}
 
 
+def cpu_model() -> str:
+    """The CPU's model name (as lscpu prints it), or the architecture where /proc/cpuinfo is absent."""
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.exists():
+        for line in cpuinfo.read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    return platform.machine()
+
+
 def load_results(path: Path, args: argparse.Namespace) -> dict:
     if path.exists() and not (args.resume or args.overwrite):
         raise SystemExit(f"{path} exists: pass --resume to keep its cells, --overwrite to start over.")
@@ -140,7 +151,7 @@ def run(args: argparse.Namespace) -> dict:
         "n_episodes": args.n_episodes,
         "seed": args.seed,
         "fps": FPS,
-        "machine": f"{platform.processor() or platform.machine()}, torch {torch.__version__}",
+        "machine": f"{cpu_model()}, {os.cpu_count()} cores, torch {torch.__version__}",
         "eval_threads": EVAL_THREADS,
     }
     settings["policies"] = settings.get("policies", {}) | {name: str(p) for name, p in paths.items()}
