@@ -74,9 +74,7 @@ def test_resumed_session_keeps_reused_stage_times_and_adds_resumed_ones(tmp_path
 def test_sdp_geometry_of_the_main_jobs_config():
     config = json.loads((REPO / "configs" / "pusht_state_cpu.json").read_text())
     line = sdp_geometry(config, "cpu")
-    assert line.startswith(
-        "SDP geometry: horizon=40 (1 past + room for 6 committed + 4 chunks x 8 + 1 padding)"
-    )
+    assert line.startswith("SDP geometry: horizon=36 (1 past + 4 chunks x 8 + 3 padding)")
     assert "4 denoiser calls per chunk (N = 16, h = 4)" in line
     assert sdp_geometry({"policy": {"type": "diffusion"}}, "cpu") is None
 
