@@ -475,7 +475,8 @@ def test_bad_observations_are_refused_on_the_client_and_the_server_goes_on(serve
     for t, (message, raw) in enumerate(bad.items()):
         error = rpc_error(lambda raw=raw, t=t: faulty.act(raw, t))
         assert error.code() == grpc.StatusCode.INVALID_ARGUMENT and message in error.details()
-        assert len(healthy.act(raw_observation(100.0 + t), t)) >= TB
+        served = healthy.act(raw_observation(100.0 + t), t)  # a chunk, or the rest while it lasts
+        assert served and served[-1].get_timestep() > t
     # not must-go, so LeRobot's server would skip it if the refused timestep counted as predicted
     actions = faulty.act(raw_observation(), len(bad) - 1, must_go=False)
     assert len(actions) == TB and actions[0].get_timestep() == len(bad) - 1
