@@ -422,6 +422,10 @@ MUTANTS = [
       "elif plan is not None and t >= plan.end:",
       "a timestep at the plan's end (the buffer's next chunk starts there) restarts the stream"),
     # The model card under LeRobot's main branch (model_card.py).
+    M("A07", "policy_server.py",
+      "if not s.in_flight and now - s.last_seen > idle",
+      "if now - s.last_seen > idle",
+      "a session busy in a call longer than the timeout is dropped as idle"),
     M("C01", "model_card.py",
       'title = f"# Model Card for {POLICY_TYPE}\\n"',
       'title = "# Model Card for "',

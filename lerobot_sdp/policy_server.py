@@ -179,6 +179,7 @@ class ClientPolicyServer(PolicyServer):
         self.error: str | None = None
         self.current: TimedObservation | None = None
         self.last_seen = time.monotonic()
+        self.in_flight = 0  # calls running now: a session is idle only with none
         self.latencies: deque[float] = deque(maxlen=LATENCIES_KEPT)  # seconds per streamed chunk
 
     def _reset_server(self) -> None:
@@ -302,9 +303,8 @@ class SDPPolicyServer(services_pb2_grpc.AsyncInferenceServicer):
     def session(self, context) -> ClientPolicyServer:
         peer, now = context.peer(), time.monotonic()
         with self._lock:
-            for gone in [
-                p for p, s in self.sessions.items() if now - s.last_seen > self.config.session_timeout_s
-            ]:
+            idle = self.config.session_timeout_s
+            for gone in [p for p, s in self.sessions.items() if not s.in_flight and now - s.last_seen > idle]:
                 logger.info(
                     "Dropping the session of %s (no call for %.0f s).",
                     gone,
@@ -321,19 +321,31 @@ class SDPPolicyServer(services_pb2_grpc.AsyncInferenceServicer):
                     )
                 session = self.sessions[peer] = ClientPolicyServer(self.config)
             session.last_seen = now
+            session.in_flight += 1
         return session
 
+    def call(self, method: str, request, context):
+        """Run one RPC in its client's session; the session counts as busy until the call returns (a
+        chunk slower than `--session_timeout_s` on a loaded machine does not get it dropped)."""
+        session = self.session(context)
+        try:
+            return getattr(session, method)(request, context)
+        finally:
+            with self._lock:
+                session.in_flight -= 1
+                session.last_seen = time.monotonic()
+
     def Ready(self, request, context):  # noqa: N802 (gRPC's names, from here on)
-        return self.session(context).Ready(request, context)
+        return self.call("Ready", request, context)
 
     def SendPolicyInstructions(self, request, context):  # noqa: N802
-        return self.session(context).SendPolicyInstructions(request, context)
+        return self.call("SendPolicyInstructions", request, context)
 
     def SendObservations(self, request_iterator, context):  # noqa: N802
-        return self.session(context).SendObservations(request_iterator, context)
+        return self.call("SendObservations", request_iterator, context)
 
     def GetActions(self, request, context):  # noqa: N802
-        return self.session(context).GetActions(request, context)
+        return self.call("GetActions", request, context)
 
 
 def start_server(config: SDPPolicyServerConfig) -> tuple[grpc.Server, SDPPolicyServer, int]:

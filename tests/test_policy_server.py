@@ -482,3 +482,35 @@ def test_bad_observations_are_refused_on_the_client_and_the_server_goes_on(serve
     assert len(actions) == TB and actions[0].get_timestep() == len(bad) - 1
     assert torch.isfinite(torch.stack([a.get_action() for a in actions])).all()
     assert len(service.sessions) == 2
+
+
+def test_a_session_busy_in_a_long_call_is_not_dropped_as_idle(server_mod):
+    """A chunk slower than --session_timeout_s (a loaded machine) keeps its session: only sessions
+    with no call running are idle."""
+
+    class Context:
+        def __init__(self, peer):
+            self._peer = peer
+
+        def peer(self):
+            return self._peer
+
+    service = server_mod.SDPPolicyServer(server_mod.SDPPolicyServerConfig(session_timeout_s=0.05))
+    slow, other = Context("ipv4:127.0.0.1:1"), Context("ipv4:127.0.0.1:2")
+    seen = {}
+
+    def long_call(request, context):
+        time.sleep(0.2)  # meanwhile another client calls, which sweeps idle sessions
+        service.call("Ready", None, other)
+        seen["kept"] = slow.peer() in service.sessions
+        return "done"
+
+    session = service.session(slow)
+    session.in_flight -= 1  # session() counted a call; this test drives one by hand below
+    session.Ready = long_call
+    service.sessions[other.peer()] = server_mod.ClientPolicyServer(service.config)
+    service.sessions[other.peer()].Ready = lambda request, context: None
+    assert service.call("Ready", None, slow) == "done" and seen["kept"]
+    time.sleep(0.1)  # now idle for longer than the timeout: the next call from another client drops it
+    service.call("Ready", None, other)
+    assert slow.peer() not in service.sessions and session.in_flight == 0
