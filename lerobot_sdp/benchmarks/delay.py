@@ -34,7 +34,7 @@ from ..pusht.job import EVAL_SEED, OBS_TYPE
 from .episodes import figures
 from .policy_args import add_policy_argument, parse_policies
 from .stream_cost import load_policy, stream_cost
-from .virtual_clock import DelayedControl, mode_problem
+from .virtual_clock import MODES, DelayedControl, mode_problem
 
 FPS = 10  # Push-T's control rate
 DELAYS = (0, 1, 2, 3, 4, 6)
@@ -45,6 +45,7 @@ MODES_OF = {"diffusion": ("blocking", "naive_async"), "sdp": ("naive_async", "de
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_policy_argument(p)
     p.add_argument("--delays", type=int, nargs="+", default=list(DELAYS), help="inference delays (ticks)")
+    p.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES, help="rows to run (default all)")
     p.add_argument("--n_episodes", type=int, default=100)
     p.add_argument("--batch_size", type=int, default=50, help="envs stepped together")
     p.add_argument("--seed", type=int, default=EVAL_SEED, help="first episode seed (as lerobot-eval)")
@@ -165,6 +166,7 @@ def run(args: argparse.Namespace) -> dict:
         (name, row, mode, d)
         for name, policy in policies.items()
         for row, mode in rows_of(name, policy)
+        if mode in args.modes
         for d in args.delays
     ]
     for name, row, mode, d in tqdm(cells, desc="delay bench cells"):
