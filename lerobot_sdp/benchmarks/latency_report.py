@@ -13,7 +13,7 @@ from lerobot.policies.pretrained import PreTrainedPolicy
 
 from .latency_measure import Case, Cycle, expected_denoiser_calls
 
-TARGET_RATIO = 1.1  # issue 4: SDP / DP time per chunk <= 1.1 / h
+TARGET_RATIO = 1.1  # the target: SDP / DP time per chunk <= 1.1 / h
 
 JSON_NAME = "latency.json"
 

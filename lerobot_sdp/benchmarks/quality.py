@@ -157,7 +157,7 @@ def ablation_runs(budget: Budget, device: str) -> list[Run]:
 
 def warmstart_runs(budget: Budget, device: str, dp_model: Path) -> list[Run]:
     """SDP h = 2 fine-tuned from the comparison's trained DP for a tenth of its steps, with the paper's
-    step encoder and with per-slot FiLM, and both trained from scratch for the same steps (issue 12)."""
+    step encoder and with per-slot FiLM, and both trained from scratch for the same steps."""
     steps = max(1, budget.steps // 10)
     base = sdp_args(budget, device, 2)
     init = [f"--policy.init_from={dp_model}"]

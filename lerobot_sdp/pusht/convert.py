@@ -3,7 +3,7 @@ LeRobotDataset v3, so Push-T trains without the Hugging Face Hub.
 
     lerobot-sdp-convert-pusht ZARR OUT_DIR [--variant image|keypoints] [--episodes 0:10] ...
 
-Variants (issue 3, "Converter"):
+Variants:
 - `image` (the default: a drop-in for Hub `lerobot/pusht`, which our users train on): exactly that
   dataset's schema: observation.image 96x96x3, observation.state = agent xy, action, next.reward,
   next.done, next.success, fps 10, one task. The one difference: images are stored as lossless PNG
