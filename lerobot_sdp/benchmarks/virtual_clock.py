@@ -28,6 +28,7 @@ from collections import deque
 import torch
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.policies.pretrained import PreTrainedPolicy
+from lerobot.policies.utils import populate_queues
 from torch import Tensor
 
 MODES = ("blocking", "naive_async", "delay_aware")
@@ -52,7 +53,7 @@ class DelayedControl(PreTrainedPolicy):
     def reset(self) -> None:
         """A new episode: the policy's buffer and history, the queue and the clock start over."""
         self.policy.reset()
-        self.history: deque[dict[str, Tensor]] = deque(maxlen=self.config.n_obs_steps)
+        self.history = {k: deque(maxlen=self.config.n_obs_steps) for k in self.config.input_features}
         self.queue: list[Tensor] = []  # (B, A) actions for the coming ticks
         self.pending: tuple[int, int, Tensor] | None = None  # (tick requested, tick ready, chunk)
         self.tick = 0
@@ -71,10 +72,8 @@ class DelayedControl(PreTrainedPolicy):
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
         """One control tick: take the observation, merge a chunk that is ready, request one that is
         due, run the next action (or hold the last target)."""
-        frame = {k: batch[k] for k in self.config.input_features}
-        while len(self.history) < self.config.n_obs_steps - 1:  # LeRobot pads an episode's start so
-            self.history.append(frame)
-        self.history.append(frame)
+        # LeRobot's own history: the first frame repeated to n_obs_steps at an episode's start
+        self.history = populate_queues(self.history, {k: batch[k] for k in self.config.input_features})
         if self.pending is not None and self.pending[1] == self.tick:
             self._merge(*self.pending)
         if self.pending is None and self._due():
@@ -94,7 +93,7 @@ class DelayedControl(PreTrainedPolicy):
         return len(self.queue) <= self.delay
 
     def _request(self) -> None:
-        history = {k: torch.stack([f[k] for f in self.history], dim=1) for k in self.history[0]}
+        history = {k: torch.stack(list(q), dim=1) for k, q in self.history.items()}
         committed = len(self.queue) if self.mode == "delay_aware" else 0
         kwargs = {"committed": committed} if self.config.type == "sdp" else {}
         chunk = self.policy.predict_action_chunk(history, **kwargs)
