@@ -4,6 +4,7 @@
     .venv/bin/python .ci/mutants.py                 # every mutant (or: make mutation)
     .venv/bin/python .ci/mutants.py --list          # check the list against the sources, print it
     .venv/bin/python .ci/mutants.py --only B04,S11  # some of them
+    .venv/bin/python .ci/mutants.py --only F01 --tests tests/test_policy_server_faults.py  # quick check
 
 Each mutant is one textual change (file, exact original text, replacement) to buffer.py,
 schedule.py, geometry.py, noise_schemes.py, the step-embedding cache of unet.py, the primer,
@@ -48,6 +49,8 @@ CORE_TESTS = [
     "tests/test_modeling_sdp.py",
     "tests/test_streaming_step.py",
     "tests/test_policy_server.py",
+    "tests/test_protocol_pickle.py",
+    "tests/test_policy_server_faults.py",
     "tests/test_model_card.py",
     "tests/test_benchmarks_compiled.py",
     "tests/test_rtc.py",
@@ -410,8 +413,8 @@ MUTANTS = [
       "actions = chunk",
       "the unexecuted rest of the plan is not resent: the new chunk is timed from the observation"),
     M("A04", "policy_server.py",
-      "if k in self.frames else frames[0]",
-      "if k in self.frames else current",
+      "if frame is not None else frames[0]",
+      "if frame is not None else current",
       "a timestep never sent repeats the newest frame instead of the next newer one"),
     M("A05", "policy_server.py",
       "self._predicted_timesteps.discard(observation_t.get_timestep())",
@@ -421,6 +424,48 @@ MUTANTS = [
       "elif plan is not None and t > plan.end:",
       "elif plan is not None and t >= plan.end:",
       "a timestep at the plan's end (the buffer's next chunk starts there) restarts the stream"),
+    # The policy server under faults (policy_server.py, protocol_pickle.py).
+    M("F01", "policy_server.py",
+      "problem = raw_observation_problem(obs.get_observation(), self.lerobot_features)",
+      "self.frames[t] = obs\n        problem = raw_observation_problem("
+      "obs.get_observation(), self.lerobot_features)",
+      "a refused observation is stored first and poisons the next histories"),
+    M("F02", "policy_server.py",
+      "if key == CLIENT_ID_KEY and value:",
+      "if False:",
+      "the client-id metadata is ignored: a reconnect from a new port loses its session"),
+    M("F03", "policy_server.py",
+      "    timer.start()\n",
+      "\n",
+      "a stalled upload holds its worker thread until the client lets go"),
+    M("F04", "policy_server.py",
+      "elif session.in_flight >= self.config.max_calls_per_client:",
+      "elif False:",
+      "one client may hold any number of calls (and every worker thread)"),
+    M("F05", "policy_server.py",
+      "message = protocol_pickle.loads(data)",
+      "message = pickle.loads(data)",
+      "client bytes are unpickled unrestricted: a payload runs code on the server"),
+    M("F06", "policy_server.py",
+      "self.policy = self.preprocessor = self.postprocessor = None",
+      "pass",
+      "a dropped session keeps its policy in memory"),
+    M("F07", "policy_server.py",
+      "self.frames, self.last_processed_obs = {}, None",
+      "self.frames = {}",
+      "a restart without Ready keeps LeRobot's last processed frame: the new episode's first one is skipped"),
+    M("F08", "policy_server.py",
+      "kept = () if restart else self._predicted_timesteps",
+      "kept = self._predicted_timesteps",
+      "a restart keeps the old episode's predicted timesteps"),
+    M("Q01", "protocol_pickle.py",
+      '("torch.storage", "_load_from_bytes"): _load_storage,',
+      '("torch.storage", "_load_from_bytes"): None,',
+      "a tensor storage is read with torch's unrestricted unpickler: code hidden in it runs"),
+    M("Q02", "protocol_pickle.py",
+      "if (module, name) not in _ADMITTED:",
+      "if False:",
+      "every global is admitted: plain pickle"),
     # The model card under LeRobot's main branch (model_card.py).
     M("A07", "policy_server.py",
       "if not s.in_flight and now - s.last_seen > idle",
@@ -595,6 +640,9 @@ def main() -> int:
     parser.add_argument(
         "--deselect", action="append", default=[], help="pytest node id to leave out (recorded in the report)"
     )
+    parser.add_argument(
+        "--tests", nargs="+", default=CORE_TESTS, help="test paths to run instead of the core tests (quick)"
+    )
     args = parser.parse_args()
 
     problems = check_list(MUTANTS, REPO)
@@ -632,9 +680,9 @@ def main() -> int:
                 file=sys.stderr,
             )
             return 2
-        print(f"{len(mutants)} mutants, tests: {' '.join(CORE_TESTS)}")
+        print(f"{len(mutants)} mutants, tests: {' '.join(args.tests)}")
         print("baseline (unmutated copy) ...", flush=True)
-        rc, output = run_tests(copies[0], CORE_TESTS, args.deselect, args.timeout)
+        rc, output = run_tests(copies[0], args.tests, args.deselect, args.timeout)
         if rc != 0:
             print(output[-4000:], file=sys.stderr)
             print(
@@ -652,7 +700,7 @@ def main() -> int:
         def job(m: Mutant) -> Result:
             root = pool.get()
             try:
-                r = run_mutant(m, root, CORE_TESTS, args.deselect, args.timeout)
+                r = run_mutant(m, root, args.tests, args.deselect, args.timeout)
             finally:
                 pool.put(root)
             print(f"{r.id:<4} {verdict(r):<34} {r.seconds:6.1f} s  {r.description}", flush=True)
@@ -680,7 +728,7 @@ def main() -> int:
         started=started,
         finished=time.strftime("%Y-%m-%d %H:%M:%S"),
         wall_s=round(wall, 1),
-        tests=CORE_TESTS,
+        tests=args.tests,
         deselect=args.deselect,
         summary=summary,
     )

@@ -8,6 +8,19 @@ that list, and gives every client (gRPC peer) its own LeRobot `PolicyServer` (`C
 its own policy, observation queue, history and SDP buffer, so a client that misbehaves or disappears
 does not disturb the others. Idle sessions are dropped after `--session_timeout_s`.
 
+What a broken or hostile client cannot do (docs/deployment.md, "Threat model and limits"):
+- **Run code here.** Client bytes are read with `protocol_pickle.loads` (LeRobot's message types only),
+  never plain `pickle.loads`; the server listens on localhost unless `--host` says otherwise.
+- **Poison its history.** An observation is checked (keys, shapes, finite numbers, an int timestep)
+  before it is stored; a refused one leaves no trace, and the error names the value and the fix.
+- **Take every thread.** At most `--max_calls_per_client` calls per client and `--max_clients`
+  clients; an upload larger than `--max_observation_mb` or unfinished after `--receive_timeout_s` is
+  cut off; the thread pool has room for every client's calls. A dropped session frees its policy.
+- **Lose its session on a reconnect.** A client is known by its `x-sdp-client-id` (or
+  `x-lerobot-client-id`) gRPC metadata when it sends one, else by its connection; a call that needs a
+  policy the server does not hold for that client is refused with FAILED_PRECONDITION saying to send
+  Ready and the policy instructions again.
+
 What SDP needs on top of LeRobot's server (docs/deployment.md, "Async inference"):
 - **History, per client.** LeRobot's server calls `predict_action_chunk` on the one observation it
   runs. Every observation a client sends (also those the server does not run) is kept by its control
@@ -31,7 +44,7 @@ What SDP needs on top of LeRobot's server (docs/deployment.md, "Async inference"
 
 import logging
 import math
-import pickle  # nosec: LeRobot's protocol pickles its messages
+import pickle  # nosec: only to re-encode messages already read with protocol_pickle
 import threading
 import time
 from collections import deque
@@ -41,6 +54,7 @@ from typing import Any
 
 import draccus
 import grpc
+import numpy as np
 import torch
 from lerobot.async_inference.configs import PolicyServerConfig
 from lerobot.async_inference.constants import SUPPORTED_POLICIES
@@ -51,18 +65,25 @@ from lerobot.async_inference.helpers import (
 )
 from lerobot.async_inference.policy_server import PolicyServer
 from lerobot.configs.policies import PreTrainedConfig
-from lerobot.transport import services_pb2_grpc
+from lerobot.transport import services_pb2, services_pb2_grpc
+from lerobot.transport.utils import MAX_MESSAGE_SIZE
 from lerobot.utils.constants import OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 from torch import Tensor
 
 import lerobot_sdp  # noqa: F401  (registers `sdp` and `pusht_sim`)
+from lerobot_sdp import protocol_pickle
 
 if "sdp" not in SUPPORTED_POLICIES:  # the list LeRobot's server checks, extended in place
     SUPPORTED_POLICIES.append("sdp")
 
 logger = logging.getLogger(__name__)
-FRAMES_KEPT = 64  # received observations kept per client for the history (control timesteps)
+FRAMES_KEPT = 16  # received observations kept per client for the history (control timesteps)
 LATENCIES_KEPT = 8  # the delay estimate is the slowest of the last few chunks
+# gRPC metadata that names a client across reconnects (ours; the one proposed to LeRobot's client)
+CLIENT_ID_KEYS = ("x-sdp-client-id", "x-lerobot-client-id")
+NEEDS_POLICY = ("SendObservations", "GetActions")
+LOOPBACK = ("localhost", "127.0.0.1", "::1")
+TransferState = services_pb2.TransferState
 
 
 @dataclass
@@ -79,12 +100,26 @@ class SDPPolicyServerConfig(PolicyServerConfig):
         },
     )
 
+    max_calls_per_client: int = field(
+        default=4,
+        metadata={"help": "Calls one client may have running at once (LeRobot's RobotClient uses 2)"},
+    )
+    max_observation_mb: float = field(
+        default=16.0, metadata={"help": "Largest observation a client may upload, in MiB (all its chunks)"}
+    )
+    receive_timeout_s: float = field(
+        default=5.0,
+        metadata={"help": "Cancel an observation upload not finished after this long (a stalled client)"},
+    )
+
     def __post_init__(self):
         super().__post_init__()
-        if self.max_clients < 1:
-            raise ValueError(f"max_clients must be at least 1, got {self.max_clients}")
-        if self.session_timeout_s <= 0:
-            raise ValueError(f"session_timeout_s must be positive, got {self.session_timeout_s}")
+        for name in ("max_clients", "max_calls_per_client"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
+        for name in ("session_timeout_s", "max_observation_mb", "receive_timeout_s"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if self.delay_ticks is not None and self.delay_ticks < 0:
             raise ValueError(f"delay_ticks must be at least 0 (or unset: measured), got {self.delay_ticks}")
 
@@ -142,9 +177,11 @@ def feature_problem(config: PreTrainedConfig, robot_features: dict[str, dict]) -
     return None
 
 
-def raw_observation_problem(raw: dict[str, Any], robot_features: dict[str, dict]) -> str | None:
-    """A missing or mis-shaped value in a robot observation, named, or None (LeRobot's own conversion
-    would fail with a bare KeyError or a shape error deep inside torch)."""
+def raw_observation_problem(raw: Any, robot_features: dict[str, dict]) -> str | None:
+    """A missing, mis-shaped or non-finite value in a robot observation, named, or None (LeRobot's own
+    conversion would fail with a bare KeyError or a shape error deep inside torch, or feed NaN on)."""
+    if not isinstance(raw, dict):
+        return f"An observation must be a dict of named values, got {type(raw).__name__}."
     for key, ft in robot_features.items():
         if ft["dtype"] in ("image", "video"):
             name = key.removeprefix(f"{OBS_IMAGES}.")
@@ -158,23 +195,95 @@ def raw_observation_problem(raw: dict[str, Any], robot_features: dict[str, dict]
             if name not in raw:
                 declared = f"the robot declared {len(ft['names'])} values for `{key}`"
                 return f"Observation is missing `{name}` ({declared})."
-            if getattr(raw[name], "shape", ()) not in ((), (1,)):
-                return f"Observation `{name}` has shape {tuple(raw[name].shape)}; expected one number."
+            problem = number_problem(name, raw[name])
+            if problem:
+                return problem
     return None
 
 
-class BadObservationError(ValueError):
-    """A robot observation with a missing or mis-shaped value."""
+def number_problem(name: str, value: Any) -> str | None:
+    """Why `value` is not one finite number, or None."""
+    if getattr(value, "shape", ()) not in ((), (1,)):
+        return f"Observation `{name}` has shape {tuple(value.shape)}; expected one number."
+    try:
+        number = float(np.asarray(value, dtype=np.float64).reshape(-1)[0])
+    except (TypeError, ValueError):
+        return f"Observation `{name}` is a {type(value).__name__}; expected a number."
+    if not math.isfinite(number):
+        return f"Observation `{name}` is {number} (NaN or inf); every value must be finite: check the sensor."
+    return None
+
+
+class ClientError(Exception):
+    """A call the server refuses; the client receives `code` and the message."""
+
+    code = grpc.StatusCode.INVALID_ARGUMENT
+
+
+class BadObservationError(ClientError):
+    """A robot observation with a missing, mis-shaped or non-finite value."""
+
+
+class SessionError(ClientError):
+    """A call that needs a policy this server does not hold for the client."""
+
+    code = grpc.StatusCode.FAILED_PRECONDITION
+
+
+class LimitError(ClientError):
+    """A call past one of the server's limits."""
+
+    code = grpc.StatusCode.RESOURCE_EXHAUSTED
+
+
+def read_message(data: bytes, kind: type) -> Any:
+    """A client message of type `kind`, read with the restricted unpickler."""
+    try:
+        message = protocol_pickle.loads(data)
+    except protocol_pickle.UnsafePayloadError as e:
+        raise ClientError(str(e)) from e
+    if not isinstance(message, kind):
+        raise ClientError(f"Expected a {kind.__name__}, got a {type(message).__name__}.")
+    return message
+
+
+def receive_upload(request_iterator, context, max_bytes: int, timeout_s: float) -> bytes:
+    """One message of LeRobot's chunked upload (TRANSFER_BEGIN / MIDDLE / END), bounded in size and in
+    time: after `timeout_s` the call is cancelled, which ends the wait for the next chunk and frees the
+    thread (LeRobot's `receive_bytes_in_chunks` waits and collects without bound)."""
+    timer = threading.Timer(timeout_s, context.cancel)
+    timer.daemon = True
+    timer.start()
+    parts, size = [], 0
+    try:
+        for item in request_iterator:
+            if item.transfer_state == TransferState.TRANSFER_BEGIN:
+                parts, size = [], 0
+            parts.append(item.data)
+            size += len(item.data)
+            if size > max_bytes:
+                raise LimitError(
+                    f"Observation upload over {max_bytes / 2**20:g} MiB; send smaller observations (fewer or "
+                    "smaller camera images), or start the server with a higher --max_observation_mb."
+                )
+            if item.transfer_state == TransferState.TRANSFER_END:
+                return b"".join(parts)
+    finally:
+        timer.cancel()
+    raise ClientError("The observation upload ended before its TRANSFER_END chunk.")
 
 
 class ClientPolicyServer(PolicyServer):
     """LeRobot's `PolicyServer` for one client. For SDP it keeps the client's observation history and
     `Plan` (module docstring); for any policy, a refused observation or setup reaches the client as an
-    INVALID_ARGUMENT error with the reason, instead of a silent empty reply."""
+    error with the reason, instead of a silent empty reply, and an observation is checked before
+    anything keeps it."""
 
     def __init__(self, config: SDPPolicyServerConfig):
         super().__init__(config)
         self.frames: dict[int, TimedObservation] = {}
+        self.frames_lock = threading.Lock()  # SendObservations writes frames while GetActions reads them
+        self.predict_lock = threading.Lock()  # one chunk at a time: the SDP buffer is one stream
         self.plan: Plan | None = None
         self.error: str | None = None
         self.current: TimedObservation | None = None
@@ -183,49 +292,83 @@ class ClientPolicyServer(PolicyServer):
         self.latencies: deque[float] = deque(maxlen=LATENCIES_KEPT)  # seconds per streamed chunk
 
     def _reset_server(self) -> None:
+        """Ready (a client starting over): every piece of per-episode state, LeRobot's and ours."""
         super()._reset_server()
-        self.frames = {}
-        self.plan = None
+        with self.frames_lock:
+            self.frames = {}
+        self.plan, self.error, self.last_processed_obs = None, None, None
+        self.fps_tracker.reset()
         if self.policy is not None:
             self.policy.reset()
 
+    def close(self) -> None:
+        """Free what the session holds (it was dropped): its policy, processors, frames and plan."""
+        self._reset_server()
+        self.policy = self.preprocessor = self.postprocessor = None
+
     def SendPolicyInstructions(self, request, context):  # noqa: N802 (gRPC's name)
-        problem = policy_problem(pickle.loads(request.data))  # nosec
+        specs = read_message(request.data, RemotePolicyConfig)
+        problem = policy_problem(specs)
         if problem:
-            context.abort(grpc.StatusCode.INVALID_ARGUMENT, problem)
+            raise ClientError(problem)
+        # LeRobot's handler unpickles request.data again: hand it bytes this server wrote
+        request = services_pb2.PolicySetup(data=pickle.dumps(specs))
         return super().SendPolicyInstructions(request, context)
 
     def GetActions(self, request, context):  # noqa: N802 (gRPC's name)
         reply = super().GetActions(request, context)
         if self.error is not None:
             message, self.error = self.error, None
-            context.abort(grpc.StatusCode.INVALID_ARGUMENT, message)
+            raise ClientError(message)
         return reply
 
     def SendObservations(self, request_iterator, context):  # noqa: N802 (gRPC's name)
+        """LeRobot's handler, bounded: the upload through `receive_upload`, the bytes through the
+        restricted unpickler, the observation checked before it is stored."""
+        max_bytes = int(self.config.max_observation_mb * 2**20)
         try:
-            return super().SendObservations(request_iterator, context)
-        except BadObservationError as e:
-            context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
+            data = receive_upload(request_iterator, context, max_bytes, self.config.receive_timeout_s)
+        except grpc.RpcError:  # cancelled: the upload stalled, or the client went away
+            logger.warning(
+                "An observation upload did not finish within %.1f s (--receive_timeout_s): cancelled.",
+                self.config.receive_timeout_s,
+            )
+            return services_pb2.Empty()
+        self._enqueue_observation(read_message(data, TimedObservation))
+        return services_pb2.Empty()
 
     def _enqueue_observation(self, obs: TimedObservation) -> bool:
+        t = obs.get_timestep()
         problem = raw_observation_problem(obs.get_observation(), self.lerobot_features)
-        if problem:  # LeRobot's similarity check and conversion would fail on it with a bare KeyError
-            raise BadObservationError(f"Observation #{obs.get_timestep()}: {problem}")
-        self.frames[obs.get_timestep()] = obs
-        for old in sorted(self.frames)[:-FRAMES_KEPT]:
-            del self.frames[old]
+        if not isinstance(t, int):
+            problem = (
+                f"the timestep is a {type(t).__name__}; LeRobot's protocol counts control ticks in ints."
+            )
+        if problem:  # checked before anything keeps it: a refused frame leaves no trace
+            raise BadObservationError(f"Observation #{t}: {problem}")
+        with self.frames_lock:
+            restart = bool(self.frames) and t < max(self.frames)
+            if restart:
+                logger.info("Client timestep went back to %d: a new episode, the history restarts.", t)
+                self.frames, self.last_processed_obs = {}, None
+            self.frames[t] = obs
+            for old in sorted(self.frames)[:-FRAMES_KEPT]:
+                del self.frames[old]
+        with self._predicted_timesteps_lock:  # LeRobot's set would grow for the whole session
+            kept = () if restart else self._predicted_timesteps
+            self._predicted_timesteps = {s for s in kept if s > t - FRAMES_KEPT}
         return super()._enqueue_observation(obs)
 
     def _predict_action_chunk(self, observation_t: TimedObservation):
-        self.current = observation_t
-        try:
-            return super()._predict_action_chunk(observation_t)
-        except (ValueError, KeyError, RuntimeError) as e:  # e.g. SDP refusing NaN; LeRobot logs and drops it
-            self.error = str(e)
-            with self._predicted_timesteps_lock:  # a corrected observation at this timestep may run
-                self._predicted_timesteps.discard(observation_t.get_timestep())
-            raise
+        with self.predict_lock:
+            self.current = observation_t
+            try:
+                return super()._predict_action_chunk(observation_t)
+            except (ValueError, KeyError, RuntimeError) as e:  # e.g. SDP refusing NaN; LeRobot drops it
+                self.error = str(e)
+                with self._predicted_timesteps_lock:  # a corrected observation at this timestep may run
+                    self._predicted_timesteps.discard(observation_t.get_timestep())
+                raise
 
     def _get_action_chunk(self, observation: dict[str, Tensor]) -> Tensor:
         if self.policy_type != "sdp":
@@ -242,7 +385,6 @@ class ClientPolicyServer(PolicyServer):
                 "Client timestep went back from %d to %d: a new episode, the stream restarts.", plan.start, t
             )
             self.policy.reset()
-            self.frames = {k: v for k, v in self.frames.items() if k <= t}
             plan = None
         elif plan is not None and t > plan.end:  # executed past what was sent: not LeRobot's client
             logger.warning(
@@ -278,9 +420,11 @@ class ClientPolicyServer(PolicyServer):
 
     def _history(self, current: dict[str, Tensor], t: int) -> dict[str, Tensor]:
         """(1, n_obs_steps, ...) per input feature, from the frames received for t - n_obs_steps + 1 .. t."""
+        with self.frames_lock:
+            past = [self.frames.get(k) for k in range(t - self.policy.config.n_obs_steps + 1, t)]
         frames = [current]
-        for k in range(t - 1, t - self.policy.config.n_obs_steps, -1):
-            frames.insert(0, self._process(self.frames[k]) if k in self.frames else frames[0])
+        for frame in reversed(past):
+            frames.insert(0, self._process(frame) if frame is not None else frames[0])
         return {
             key: torch.stack([f[key] for f in frames], dim=1) for key in self.policy.config.input_features
         }
@@ -293,43 +437,70 @@ class ClientPolicyServer(PolicyServer):
 
 
 class SDPPolicyServer(services_pb2_grpc.AsyncInferenceServicer):
-    """The gRPC service: routes each call to its client's `ClientPolicyServer` (by gRPC peer)."""
+    """The gRPC service: routes each call to its client's `ClientPolicyServer`, within the limits."""
 
     def __init__(self, config: SDPPolicyServerConfig):
         self.config = config
         self.sessions: dict[str, ClientPolicyServer] = {}
         self._lock = threading.Lock()
 
-    def session(self, context) -> ClientPolicyServer:
-        peer, now = context.peer(), time.monotonic()
+    @staticmethod
+    def client_key(context) -> str:
+        """The client's id metadata (the same across reconnects), else its connection."""
+        for key, value in context.invocation_metadata() or ():
+            if key in CLIENT_ID_KEYS and value:
+                return f"id:{value[:128]}"
+        return context.peer()
+
+    def session(self, context, method: str) -> ClientPolicyServer:
+        key, now = self.client_key(context), time.monotonic()
         with self._lock:
-            idle = self.config.session_timeout_s
-            for gone in [p for p, s in self.sessions.items() if not s.in_flight and now - s.last_seen > idle]:
-                logger.info(
-                    "Dropping the session of %s (no call for %.0f s).",
-                    gone,
-                    now - self.sessions[gone].last_seen,
+            self._drop_idle(now)
+            session = self.sessions.get(key)
+            if method in NEEDS_POLICY and (session is None or session.policy is None):
+                raise SessionError(
+                    f"This server holds no policy for this client ({key}): it has not sent its policy "
+                    "instructions, reconnected from a new address without `x-sdp-client-id` metadata, "
+                    f"was dropped after {self.config.session_timeout_s:g} s without a call "
+                    "(--session_timeout_s), or the server restarted. Send Ready and the policy instructions "
+                    "again (LeRobot's RobotClient: restart it)."
                 )
-                self.sessions.pop(gone).stop()
-            session = self.sessions.get(peer)
             if session is None:
                 if len(self.sessions) >= self.config.max_clients:
-                    context.abort(
-                        grpc.StatusCode.RESOURCE_EXHAUSTED,
+                    raise LimitError(
                         f"This server already serves {len(self.sessions)} clients (--max_clients="
-                        f"{self.config.max_clients}); retry later or start it with a higher --max_clients.",
+                        f"{self.config.max_clients}); retry later or start it with a higher --max_clients."
                     )
-                session = self.sessions[peer] = ClientPolicyServer(self.config)
+                session = self.sessions[key] = ClientPolicyServer(self.config)
+            elif session.in_flight >= self.config.max_calls_per_client:
+                raise LimitError(
+                    f"This client already has {session.in_flight} calls running (--max_calls_per_client="
+                    f"{self.config.max_calls_per_client}); LeRobot's RobotClient needs 2: wait for a reply."
+                )
             session.last_seen = now
             session.in_flight += 1
         return session
 
+    def _drop_idle(self, now: float) -> None:
+        idle = self.config.session_timeout_s
+        for gone in [k for k, s in self.sessions.items() if not s.in_flight and now - s.last_seen > idle]:
+            logger.info(
+                "Dropping the session of %s (no call for %.0f s).", gone, now - self.sessions[gone].last_seen
+            )
+            self.sessions.pop(gone).close()
+
     def call(self, method: str, request, context):
         """Run one RPC in its client's session; the session counts as busy until the call returns (a
-        chunk slower than `--session_timeout_s` on a loaded machine does not get it dropped)."""
-        session = self.session(context)
+        chunk slower than `--session_timeout_s` on a loaded machine does not get it dropped). A refused
+        call reaches the client as its `ClientError` code and message."""
+        try:
+            session = self.session(context, method)
+        except ClientError as e:
+            context.abort(e.code, str(e))
         try:
             return getattr(session, method)(request, context)
+        except ClientError as e:
+            context.abort(e.code, str(e))
         finally:
             with self._lock:
                 session.in_flight -= 1
@@ -348,11 +519,20 @@ class SDPPolicyServer(services_pb2_grpc.AsyncInferenceServicer):
         return self.call("GetActions", request, context)
 
 
+def worker_threads(config: SDPPolicyServerConfig) -> int:
+    """Every client's calls at once, and a few to refuse the calls past the limits with."""
+    return config.max_clients * config.max_calls_per_client + 4
+
+
 def start_server(config: SDPPolicyServerConfig) -> tuple[grpc.Server, SDPPolicyServer, int]:
     """Start the service on `config.host:config.port`; returns the bound port."""
     service = SDPPolicyServer(config)
-    # Per client: one GetActions waiting for an observation, one SendObservations, a Ready or setup.
-    server = grpc.server(futures.ThreadPoolExecutor(max_workers=4 * config.max_clients))
+    workers = worker_threads(config)
+    server = grpc.server(
+        futures.ThreadPoolExecutor(max_workers=workers),
+        maximum_concurrent_rpcs=workers,  # calls past it are refused by gRPC, never queued behind a stall
+        options=[("grpc.max_receive_message_length", MAX_MESSAGE_SIZE)],  # one chunk of LeRobot's uploads
+    )
     services_pb2_grpc.add_AsyncInferenceServicer_to_server(service, server)
     port = server.add_insecure_port(f"{config.host}:{config.port}")
     server.start()
@@ -363,6 +543,13 @@ def start_server(config: SDPPolicyServerConfig) -> tuple[grpc.Server, SDPPolicyS
 def serve(config: SDPPolicyServerConfig) -> None:
     server, _, port = start_server(config)
     logger.info("SDP policy server on %s:%d (policies: %s)", config.host, port, ", ".join(SUPPORTED_POLICIES))
+    if config.host not in LOOPBACK:
+        logger.warning(
+            "Listening on %s: anyone who can reach port %d can load any policy this machine can read and "
+            "drive its CPU or GPU; there is no authentication (docs/deployment.md, threat model).",
+            config.host,
+            port,
+        )
     server.wait_for_termination()
 
 

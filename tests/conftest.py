@@ -35,3 +35,12 @@ def _restore_root_logging():
     yield
     root.handlers[:] = handlers
     root.setLevel(level)
+
+
+@pytest.fixture
+def server_mod(tmp_path, monkeypatch):
+    """The module, imported with the working directory in tmp (LeRobot's server logger makes `logs/`)."""
+    monkeypatch.chdir(tmp_path)
+    from lerobot_sdp import policy_server
+
+    return policy_server

@@ -21,15 +21,6 @@ from lerobot_sdp.lerobot_cli import let_sigint_reach_children
 TB = 4  # tiny_config's n_action_steps
 
 
-@pytest.fixture
-def server_mod(tmp_path, monkeypatch):
-    """The module, imported with the working directory in tmp (LeRobot's server logger makes `logs/`)."""
-    monkeypatch.chdir(tmp_path)
-    from lerobot_sdp import policy_server
-
-    return policy_server
-
-
 def pusht_features(tmp_path) -> dict:
     from lerobot.async_inference.helpers import map_robot_keys_to_lerobot_features
     from lerobot.robots.utils import make_robot_from_config
@@ -470,7 +461,7 @@ def test_bad_observations_are_refused_on_the_client_and_the_server_goes_on(serve
     bad = {
         "missing `block_kp5_y.pos`": missing,
         "`agent_x.pos` has shape (2,)": {**raw_observation(), "agent_x.pos": np.array([1.0, 2.0])},
-        "contains NaN or inf": {**raw_observation(), "block_kp0_x.pos": float("nan")},
+        "is nan (NaN or inf)": {**raw_observation(), "block_kp0_x.pos": float("nan")},
     }
     for t, (message, raw) in enumerate(bad.items()):
         error = rpc_error(lambda raw=raw, t=t: faulty.act(raw, t))
@@ -495,6 +486,9 @@ def test_a_session_busy_in_a_long_call_is_not_dropped_as_idle(server_mod):
         def peer(self):
             return self._peer
 
+        def invocation_metadata(self):
+            return ()
+
     service = server_mod.SDPPolicyServer(server_mod.SDPPolicyServerConfig(session_timeout_s=0.05))
     slow, other = Context("ipv4:127.0.0.1:1"), Context("ipv4:127.0.0.1:2")
     seen = {}
@@ -505,7 +499,7 @@ def test_a_session_busy_in_a_long_call_is_not_dropped_as_idle(server_mod):
         seen["kept"] = slow.peer() in service.sessions
         return "done"
 
-    session = service.session(slow)
+    session = service.session(slow, "Ready")
     session.in_flight -= 1  # session() counted a call; this test drives one by hand below
     session.Ready = long_call
     service.sessions[other.peer()] = server_mod.ClientPolicyServer(service.config)

@@ -111,6 +111,7 @@ def test_the_env_advances_with_the_wall_clock_and_a_stall_holds_the_last_target(
     assert stats["missed_ticks"] == 2 and stats["current_episode"]["steps"] == 7
     assert stats["action_jump_px"]["max"] == 120.0 and stats["action_jump_px"]["n"] == 4
     assert stats["action_jump_px"]["p50"] == 3.5  # jumps 3, 4, 120, 0
+    assert stats["longest_gap_s"] == pytest.approx(0.34)  # 0.2 -> 0.54: the stall
 
 
 def test_an_action_early_for_its_tick_is_the_next_ticks_target(tmp_path, monkeypatch):

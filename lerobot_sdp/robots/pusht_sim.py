@@ -68,6 +68,8 @@ class PushTSim(Robot):
         self._last_target: np.ndarray | None = None
         self.missed_ticks = 0
         self.action_jumps: list[float] = []
+        self.longest_gap_s = 0.0  # the longest wall time between two actions (a stalled controller)
+        self._t_last: float | None = None
 
     @property
     def observation_features(self) -> dict:
@@ -154,7 +156,8 @@ class PushTSim(Robot):
             return {k: self._obs[k] for k in AGENT_KEYS}
         if self._last_target is not None:
             self.action_jumps.append(float(np.linalg.norm(target - self._last_target)))
-        self._last_target = target
+            self.longest_gap_s = max(self.longest_gap_s, now - self._t_last)
+        self._last_target, self._t_last = target, now
         self.actions_sent += 1
         if len(self.rewards) <= self._due(now):
             self._step(target)
@@ -209,6 +212,7 @@ class PushTSim(Robot):
             "early_actions": self.early_actions,
             "ignored_commands": self.ignored_commands,
             "missed_ticks": self.missed_ticks,
+            "longest_gap_s": self.longest_gap_s,
             "action_jump_px": jump_stats(self.action_jumps),
             "last_reward": self.last_reward,
             "episodes": list(self.episodes),
