@@ -10,7 +10,7 @@ from types import ModuleType
 
 from lerobot.utils.utils import init_logging
 
-from . import compiled, delay, deployment, latency, quality, throughput, train_profile
+from . import compiled, delay, deployment, latency, quality, server_load, throughput, train_profile
 
 SUBCOMMANDS: dict[str, ModuleType] = {
     "latency": latency,
@@ -20,6 +20,7 @@ SUBCOMMANDS: dict[str, ModuleType] = {
     "throughput": throughput,
     "deployment": deployment,
     "delay": delay,
+    "server-load": server_load,
 }
 
 
