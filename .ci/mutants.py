@@ -280,7 +280,7 @@ MUTANTS = [
     M("S21", "schedule.py",
       "active=None if all_active else active,",
       "active=active,",
-      "the all-true mask kept while streaming (a torch.where per step: the waste issue 13 removed)"),
+      "the all-true mask kept while streaming (a wasted torch.where per step)"),
     # --- noise_schemes.py: chunk-wise bands ----------------------------------------------------------
     M("N01", "noise_schemes.py",
       "offset = torch.randint(1, s + 1, (batch_size, 1), device=device)",
@@ -431,7 +431,7 @@ MUTANTS = [
       "obs.get_observation(), self.lerobot_features)",
       "a refused observation is stored first and poisons the next histories"),
     M("F02", "policy_server.py",
-      "if key == CLIENT_ID_KEY and value:",
+      "if key in CLIENT_ID_KEYS and value:",
       "if False:",
       "the client-id metadata is ignored: a reconnect from a new port loses its session"),
     M("F03", "policy_server.py",

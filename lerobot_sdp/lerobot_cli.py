@@ -104,19 +104,3 @@ def evaluate(model_dir: Path, eval_dir: Path, args: list[str], log: Path, echo: 
         cmd = [lerobot_bin("lerobot-eval"), f"--policy.path={model_dir}", *args, f"--output_dir={eval_dir}"]
         run_logged(cmd, log, echo)
     return json.loads(info.read_text())["overall"]
-
-
-def pusht_eval_args(
-    obs_type: str, n_episodes: int, seed: int, device: str, episode_length: int | None = None
-) -> list[str]:
-    """Push-T evaluation on batched sync envs (async Push-T envs are broken in lerobot 0.6.1)."""
-    args = [
-        "--env.type=pusht",
-        f"--env.obs_type={obs_type}",
-        f"--eval.n_episodes={n_episodes}",
-        f"--eval.batch_size={min(n_episodes, 50)}",
-        "--eval.use_async_envs=false",
-        f"--policy.device={device}",
-        f"--seed={seed}",
-    ]
-    return args + ([f"--env.episode_length={episode_length}"] if episode_length else [])

@@ -8,6 +8,7 @@ import math
 import pytest
 import torch
 
+from lerobot_sdp import chunk_cost
 from lerobot_sdp.benchmarks import cli, latency, latency_measure
 
 SAMPLERS = {"DDIM4": 4, "DDPM6": 6}
@@ -113,7 +114,7 @@ def test_dp_gets_the_same_denoiser_and_horizon_as_sdp():
     assert dp.config.num_inference_steps == sdp.config.num_inference_steps == 4
 
     def unet_shapes(policy):
-        (unet, *_) = latency_measure.denoisers(policy)
+        (unet, *_) = chunk_cost.denoisers(policy)
         return {
             k: v.shape for k, v in unet.state_dict().items() if not k.startswith("diffusion_step_encoder")
         }

@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 from sdp_test_utils import make_tiny_pusht_dataset
 
-from lerobot_sdp.lerobot_cli import pusht_eval_args
 from lerobot_sdp.pusht import job
+from lerobot_sdp.pusht.evaluation import pusht_eval_args
 from lerobot_sdp.pusht.job import StageTimings, print_summary, sdp_geometry
 
 REPO = Path(__file__).resolve().parents[1]

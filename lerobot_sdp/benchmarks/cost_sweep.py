@@ -9,10 +9,10 @@ plot puts avg_max_reward and pc_success against both, one curve per policy.
 
 from pathlib import Path
 
+from ..chunk_cost import stream_cost
 from ..lerobot_cli import evaluate
 from .curves import episode_stats
 from .latency_measure import Sampler
-from .stream_cost import stream_cost
 
 SAMPLERS = {
     "diffusion": ("DDPM100", "DDIM16", "DDIM10", "DDIM5", "DDIM2"),

@@ -30,10 +30,10 @@ from lerobot.policies.factory import make_pre_post_processors
 from lerobot.scripts.lerobot_eval import eval_policy
 from tqdm import tqdm
 
-from ..pusht.job import EVAL_SEED, OBS_TYPE
+from ..chunk_cost import load_policy, stream_cost
+from ..pusht.evaluation import EVAL_SEED, OBS_TYPE
 from .episodes import figures
 from .policy_args import add_policy_argument, parse_policies
-from .stream_cost import load_policy, stream_cost
 from .virtual_clock import MODES, DelayedControl, mode_problem
 
 FPS = 10  # Push-T's control rate

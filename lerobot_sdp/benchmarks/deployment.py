@@ -34,7 +34,7 @@ from lerobot.configs.policies import PreTrainedConfig
 
 from ..lerobot_cli import lerobot_bin, let_sigint_reach_children, subprocess_env
 from ..processor_sdp import lacks_split_state_step
-from ..pusht.job import EVAL_SEED
+from ..pusht.evaluation import EVAL_SEED
 from .episodes import figures
 from .policy_args import add_policy_argument, parse_policies
 

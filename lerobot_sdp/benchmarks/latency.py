@@ -21,17 +21,16 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from ..chunk_cost import CallProbe, denoisers
 from .latency_measure import (
     OBSERVATIONS,
     UNET_PRESETS,
-    CallProbe,
     Case,
     Clock,
     Contender,
     Sampler,
     build_policies,
     cpu_threads,
-    denoisers,
     image_encoders,
     measure,
     observation_stream,

@@ -15,10 +15,9 @@ import copy
 import itertools
 import re
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, fields
-from typing import Self
 
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
@@ -29,6 +28,7 @@ from lerobot.utils.random_utils import set_seed
 from torch import nn
 from tqdm import tqdm
 
+from ..chunk_cost import CallProbe
 from ..configuration_sdp import SDPConfig
 from ..modeling_sdp import SDPPolicy
 
@@ -153,11 +153,6 @@ def expected_denoiser_calls(policy: PreTrainedPolicy) -> int:
     return policy.diffusion.num_inference_steps
 
 
-def denoisers(policy: nn.Module) -> list[nn.Module]:
-    """The U-Nets (EMA copy included), as attributes: a compiled U-Net is hooked on its wrapper."""
-    return [m.unet for m in policy.modules() if isinstance(m, DiffusionModel)]
-
-
 def image_encoders(policy: nn.Module) -> list[nn.Module]:
     """The camera encoders (none for state observations: their "encoder" is a concatenation). One
     encoder per camera sits in a ModuleList, which is never called itself: hook its members."""
@@ -179,52 +174,6 @@ class Clock:
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
         return time.perf_counter()
-
-
-class CallProbe:
-    """Counts and times the forward calls of some modules through forward hooks (counted, never
-    inferred). On CUDA the intervals are CUDA events, read only after the clock has synchronised, so
-    probing adds no synchronisation of its own. Use as a context manager (removes the hooks)."""
-
-    def __init__(self, modules: Iterable[nn.Module], device: torch.device):
-        self._cuda = device.type == "cuda"
-        self._intervals: list[list] = []
-        self._handles = []
-        for module in modules:
-            self._handles.append(module.register_forward_pre_hook(self._start))
-            self._handles.append(module.register_forward_hook(self._stop))
-
-    def _marker(self):
-        if not self._cuda:
-            return time.perf_counter()
-        event = torch.cuda.Event(enable_timing=True)
-        event.record()
-        return event
-
-    def _start(self, module, args) -> None:
-        self._intervals.append([self._marker(), None])
-
-    def _stop(self, module, args, output) -> None:
-        self._intervals[-1][1] = self._marker()
-
-    @property
-    def calls(self) -> int:
-        return len(self._intervals)
-
-    def seconds(self) -> float:
-        if self._cuda:
-            return sum(start.elapsed_time(stop) for start, stop in self._intervals) / 1000
-        return sum(stop - start for start, stop in self._intervals)
-
-    def reset(self) -> None:
-        self._intervals.clear()
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        for handle in self._handles:
-            handle.remove()
 
 
 def observation_stream(

@@ -18,13 +18,13 @@ from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
+from ..chunk_cost import stream_cost
 from ..geometry import ChunkGeometry
-from ..lerobot_cli import evaluate, last_checkpoint, pusht_eval_args, train, trained_steps
+from ..lerobot_cli import evaluate, last_checkpoint, train, trained_steps
 from ..pusht.data import keypoints_dataset_args
-from ..pusht.job import EVAL_SEED, OBS_TYPE
+from ..pusht.evaluation import EVAL_SEED, OBS_TYPE, pusht_eval_args
 from . import cost_sweep
 from .curves import checkpoint_steps, episode_stats, plot, step_logs, train_wall_s, wall_time_at
-from .stream_cost import stream_cost
 
 DP_HORIZON = 16  # LeRobot's reference Push-T Diffusion Policy (lerobot/diffusion_pusht)
 

@@ -26,7 +26,7 @@ import grpc
 from lerobot.configs.policies import PreTrainedConfig
 
 from ..lerobot_cli import lerobot_bin
-from ..pusht.job import EVAL_SEED
+from ..pusht.evaluation import EVAL_SEED
 from ..robots import PushTSimConfig
 from .deployment import FPS, Logged, robot_ready_problem, wait_for_port
 from .policy_args import add_policy_argument, parse_policies

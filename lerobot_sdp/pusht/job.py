@@ -26,13 +26,12 @@ from pathlib import Path
 import draccus
 from lerobot.configs.policies import PreTrainedConfig
 
-from ..benchmarks.stream_cost import stream_cost
-from ..lerobot_cli import CLIError, eval_info, evaluate, pusht_eval_args, train, trained_steps
+from ..chunk_cost import stream_cost
+from ..lerobot_cli import CLIError, eval_info, evaluate, train, trained_steps
 from .data import NoPushTDataError, converted, keypoints_dataset_args
+from .evaluation import EVAL_SEED, OBS_TYPE, pusht_eval_args
 
 REPO = Path(__file__).resolve().parents[2]
-OBS_TYPE = "environment_state_agent_pos"
-EVAL_SEED = 100_000  # fixed episode seeds, also the quality benchmark's
 STAGES = ("data", "train", "eval", "measure")
 
 
