@@ -58,6 +58,7 @@ CORE_TESTS = [
     "tests/test_benchmarks_delay.py::test_naive_async_diffusion_drops_the_actions_that_are_already_past",
     "tests/test_benchmarks_delay.py::test_sdp_chunks_follow_the_actions_left_and_delay_aware_commits_them",
     "tests/test_pusht_robot.py::test_the_env_advances_with_the_wall_clock_and_a_stall_holds_the_last_target",
+    "tests/test_warm_start.py::test_checkpoint_that_does_not_fit_is_a_clear_error",
 ]
 _buffer_tests = {p.relative_to(REPO).as_posix() for p in (REPO / "tests").glob("test_buffer*.py")}
 CORE_TESTS += sorted(_buffer_tests - set(CORE_TESTS))  # any later tests/test_buffer*.py
@@ -466,6 +467,11 @@ MUTANTS = [
       "if (module, name) not in _ADMITTED:",
       "if False:",
       "every global is admitted: plain pickle"),
+    # Warm start from a Diffusion Policy (warm_start.py).
+    M("W01", "warm_start.py",
+      "    _check_normalization(dp, config, source)\n",
+      "",
+      "a DP that normalises actions another way is copied without a word"),
     # The model card under LeRobot's main branch (model_card.py).
     M("A07", "policy_server.py",
       "if not s.in_flight and now - s.last_seen > idle",

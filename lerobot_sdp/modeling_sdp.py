@@ -112,11 +112,22 @@ class SDPModel(DiffusionModel):
         return "default" if mode == "reduce-overhead" and device.type != "cuda" else mode
 
     def conditional_sample(
-        self, batch_size: int, global_cond: Tensor, generator: torch.Generator | None = None
+        self,
+        batch_size: int,
+        global_cond: Tensor,
+        generator: torch.Generator | None = None,
+        noise: Tensor | None = None,
     ) -> Tensor:
-        """Full N-step denoise with every slot at one level: DP-style sampling, SDP's "denoise" primer."""
+        """Full N-step denoise with every slot at one level: DP-style sampling, SDP's "denoise" primer,
+        and DP's `generate_actions` (which passes its initial sample as `noise`)."""
         shape = (batch_size, self.geometry.horizon, self.config.action_feature.shape[0])
-        sample = torch.randn(shape, generator=generator, device=global_cond.device, dtype=global_cond.dtype)
+        if noise is not None and tuple(noise.shape) != shape:
+            raise ValueError(f"noise has shape {tuple(noise.shape)}; SDP's initial sample is {shape}.")
+        sample = (
+            noise
+            if noise is not None
+            else torch.randn(shape, generator=generator, device=global_cond.device, dtype=global_cond.dtype)
+        )
         n = self.num_inference_steps
         k_start = torch.full((self.geometry.horizon,), n, device=sample.device)
         plan = reverse_plan(self.schedule, k_start, n, batch_size)

@@ -173,6 +173,7 @@ def check_compatible(dp: dict, config: SDPConfig, source: str) -> None:
             f"init_from={source!r}: the checkpoint's network differs from the SDP config's ({found}), so its "
             f"weights do not fit. Pass {flags} (as the checkpoint)."
         )
+    _check_normalization(dp, config, source)
     for name in SCHEDULE_FIELDS:
         if name in dp and _as_tuple(dp[name]) != _as_tuple(getattr(config, name)):
             logging.warning(
@@ -182,6 +183,21 @@ def check_compatible(dp: dict, config: SDPConfig, source: str) -> None:
                 dp[name],
                 getattr(config, name),
             )
+
+
+def _check_normalization(dp: dict, config: SDPConfig, source: str) -> None:
+    """The copied U-Net predicts actions (and reads states) in the space its normaliser made: another
+    mode (e.g. MEAN_STD actions where SDP uses MIN_MAX) would feed it a different space."""
+    theirs = {k: str(v) for k, v in dp.get("normalization_mapping", {}).items()}
+    ours = {k: v.value for k, v in config.normalization_mapping.items()}
+    differ = sorted(k for k in theirs.keys() & ours.keys() if theirs[k] != ours[k])
+    if differ:
+        found = "; ".join(f"{k}: {theirs[k]} there, {ours[k]} here" for k in differ)
+        raise ValueError(
+            f"init_from={source!r}: the checkpoint normalises differently ({found}), so its weights work "
+            f"in another space. Set SDP's \"normalization_mapping\" to the checkpoint's {theirs} (in the "
+            "config file, `policy.normalization_mapping`), or warm start from a DP trained with SDP's."
+        )
 
 
 def _flag_value(value) -> str:

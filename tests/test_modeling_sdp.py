@@ -411,3 +411,20 @@ def test_reset_while_a_chunk_is_computed_leaves_a_fresh_stream():
         policy.predict_action_chunk(hist, generator=torch.Generator().manual_seed(7)),
         reference.predict_action_chunk(hist, generator=torch.Generator().manual_seed(7)),
     )
+
+
+def test_dps_generate_actions_samples_the_first_executed_chunk():
+    """LeRobot's `DiffusionModel.generate_actions` (inherited) passes its initial sample as `noise`: a
+    full denoise from that sample, the executed chunk cut from it; a wrong shape is named."""
+    torch.manual_seed(0)
+    cfg = tiny_config(noise_scheduler_type="DDIM")
+    model = SDPPolicy(cfg).eval().model
+    batch = history(cfg, batch_size=3)
+    noise = torch.randn(3, cfg.horizon, 2)
+    with torch.no_grad():
+        actions = model.generate_actions(batch, noise=noise)
+        full = model.conditional_sample(3, model._prepare_global_conditioning(batch), noise=noise)
+    assert actions.shape == (3, cfg.n_action_steps, 2)
+    assert torch.equal(actions, full[:, cfg.geometry.executed])
+    with pytest.raises(ValueError, match=r"noise has shape \(3, 5, 2\); SDP's initial sample is"):
+        model.generate_actions(batch, noise=torch.randn(3, 5, 2))

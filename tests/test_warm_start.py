@@ -7,11 +7,13 @@ import shutil
 
 import pytest
 import torch
-from lerobot.configs.types import FeatureType, PolicyFeature
+from lerobot.configs.types import FeatureType, NormalizationMode, PolicyFeature
 from sdp_test_utils import PUSHT_STATS, history, observation, tiny_config
 
 from lerobot_sdp import SDPPolicy, make_sdp_pre_post_processors
 from lerobot_sdp.warm_start import normalizer_stats
+
+MEAN_STD, MIN_MAX = NormalizationMode.MEAN_STD, NormalizationMode.MIN_MAX
 
 
 def dp_config(sdp_cfg, **overrides):
@@ -177,6 +179,10 @@ def test_unknown_step_conditioning_is_refused():
         ),
         ("camera", r"observation features differ \(only in the checkpoint: \['observation.images.wrist'\]"),
         ("act", r"is a 'act' checkpoint, not a LeRobot `diffusion` one"),
+        (
+            dict(normalization_mapping={"VISUAL": MEAN_STD, "STATE": MIN_MAX, "ACTION": MEAN_STD}),
+            r"normalises differently \(ACTION: MEAN_STD there, MIN_MAX here\)",
+        ),
     ],
 )
 def test_checkpoint_that_does_not_fit_is_a_clear_error(tmp_path, change, message):
