@@ -1,7 +1,8 @@
 # The two fresh-machine commands of the README.
 #   make main   set up, then run the Push-T main job (data -> train SDP -> lerobot-eval -> summary)
 #   make test   set up, lint (ruff check + format check), then run the test suite (what CI runs)
-.PHONY: setup main lint test mutation
+#   make test-fast   the core tests only, for the edit loop
+.PHONY: setup main lint test test-fast mutation
 
 setup:
 	bash .ci/setup
@@ -12,10 +13,18 @@ main: setup
 lint: setup
 	.venv/bin/ruff check . && .venv/bin/ruff format --check .
 
-# pytest exits 5 when it collected no test: that must fail CI, not pass as green.
+PYTEST = HF_HUB_OFFLINE=1 WANDB_MODE=disabled MUJOCO_GL=$${MUJOCO_GL:-egl} .venv/bin/python -m pytest -q
+# pytest exits 5 when it collected no test: that must fail, not pass as green.
+NO_TESTS_FAILS = rc=$$?; if [ $$rc -eq 5 ]; then echo "error: pytest collected no tests" >&2; exit 1; fi; exit $$rc
+
 test: setup lint
-	HF_HUB_OFFLINE=1 WANDB_MODE=disabled MUJOCO_GL=$${MUJOCO_GL:-egl} .venv/bin/python -m pytest -q $(PYTEST_ARGS); \
-	rc=$$?; if [ $$rc -eq 5 ]; then echo "error: pytest collected no tests" >&2; exit 1; fi; exit $$rc
+	$(PYTEST) $(PYTEST_ARGS); $(NO_TESTS_FAILS)
+
+# The edit loop: the algorithm core, the policy and the package's layers, no end-to-end CLI run.
+FAST_TESTS = tests/test_buffer*.py tests/test_geometry.py tests/test_schedule.py tests/test_noise_schemes.py \
+	tests/test_streaming_step.py tests/test_modeling_sdp.py tests/test_configuration_sdp.py tests/test_layers.py
+test-fast: setup
+	$(PYTEST) -m "not slow" $(FAST_TESTS) $(PYTEST_ARGS); $(NO_TESTS_FAILS)
 
 # Mutation check of the streaming core (buffer, schedule, geometry, noise schemes): every listed
 # single-line bug must fail the core tests (about 20 min on 2 CPU cores; report in outputs/mutants/).
