@@ -19,6 +19,7 @@ LAYERS = {
         "torchcodec_notice",
         "dataset_writing",
         "lerobot_cli",
+        "shipped_configs",
         "chunk_cost",
     ],
     "tasks": ["robots", "pusht", "robomimic", "policy_server", "protocol_pickle"],

@@ -27,10 +27,10 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
+from .. import shipped_configs
 from ..lerobot_cli import lerobot_bin
 from .curves import parse_step
 
-REPO = Path(__file__).resolve().parents[2]
 STEP_LOG = re.compile(r"step:(\d+(?:\.\d+)?[KM]?) .*updt_s:([\d.]+) data_s:([\d.]+)")
 THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OMP_WAIT_POLICY")
 VARIANTS = {
@@ -45,7 +45,7 @@ VARIANTS = {
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config_path", type=Path, default=REPO / "configs" / "pusht_state_cpu.json")
+    p.add_argument("--config_path", type=Path, default=shipped_configs.path("pusht_state_cpu"))
     p.add_argument("--dataset_root", type=Path, required=True)
     p.add_argument("--repo_id", default="local/pusht_keypoints")
     p.add_argument("--variants", nargs="+", default=["baseline", "tuned"], choices=list(VARIANTS))

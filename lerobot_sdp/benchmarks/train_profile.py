@@ -20,12 +20,13 @@ from pathlib import Path
 
 import torch
 
-REPO = Path(__file__).resolve().parents[2]
+from .. import shipped_configs
+
 PHASES = ("data", "preprocess", "forward", "backward", "optimizer", "ema")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config_path", type=Path, default=REPO / "configs" / "pusht_state_cpu.json")
+    p.add_argument("--config_path", type=Path, default=shipped_configs.path("pusht_state_cpu"))
     p.add_argument(
         "--dataset_root", type=Path, required=True, help="local LeRobotDataset (e.g. the converted zarr)"
     )

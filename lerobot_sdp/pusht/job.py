@@ -26,19 +26,19 @@ from pathlib import Path
 import draccus
 from lerobot.configs.policies import PreTrainedConfig
 
+from .. import shipped_configs
 from ..chunk_cost import stream_cost
 from ..lerobot_cli import CLIError, eval_info, evaluate, train, trained_steps
 from .data import NoPushTDataError, converted, keypoints_dataset_args
 from .evaluation import EVAL_SEED, OBS_TYPE, pusht_eval_args
 
-REPO = Path(__file__).resolve().parents[2]
 STAGES = ("data", "train", "eval", "measure")
 
 
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--output_dir", type=Path, default=Path("outputs/pusht_main"))
-    p.add_argument("--config_path", type=Path, default=REPO / "configs" / "pusht_state_cpu.json")
+    p.add_argument("--config_path", type=Path, default=shipped_configs.path("pusht_state_cpu"))
     p.add_argument(
         "--zarr",
         type=Path,
