@@ -84,3 +84,12 @@ def test_the_check_sees_relative_and_absolute_imports():
     assert "lerobot_sdp.robots.config_pusht_sim" in imported(probe)
     assert "lerobot_sdp.protocol_pickle" in imported(PKG / "policy_server.py")
     assert "lerobot_sdp.chunk_cost" in imported(PKG / "pusht" / "job.py")
+
+
+def test_the_readme_map_names_every_module_and_subpackage():
+    readme = (PKG.parent / "README.md").read_text()
+    layout = readme[readme.index("## Layout") :].split("\n## ", 1)[0]
+    names = [f"`{p.name}`" for p in PKG.glob("*.py") if p.name != "__init__.py"]
+    names += [f"`{p.parent.name}/`" for p in PKG.glob("*/__init__.py")]
+    missing = [n for n in names if n not in layout]
+    assert not missing, f"README's Layout does not name {missing}"
