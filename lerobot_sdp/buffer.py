@@ -1,5 +1,5 @@
 """The streaming action buffer (paper Sec. "Action Buffer", Algorithm 1, Eq. 3-4 and the action
-primers of Sec. "Initializing the action buffer"; sdp-algorithm.md, section 7).
+primers of Sec. "Initializing the action buffer"; docs/algorithm.md, section 7).
 
 The buffer holds one partially denoised action sequence per environment, normalised, shape
 (B, horizon, A). At the start of every call its slots sit at ``geometry.start_levels`` (chunk i at

@@ -1,6 +1,6 @@
 """Chunk geometry of the action sequence: the one place that owns SDP's sizes.
 
-Layout of the denoised sequence (sdp-algorithm.md, section 2; paper Sec. "Action Buffer"):
+Layout of the denoised sequence (docs/algorithm.md, section 2; paper Sec. "Action Buffer"):
 
     [ To-1 past slots | chunk 0 (Tb) | chunk 1 (Tb) | ... | chunk h-1 (Tb) | r padding slots ]
 

@@ -1,7 +1,7 @@
 """Training noise-corruption schemes: which level every slot of a training sample is noised to.
 
 Paper Sec. "Training SDP Policy" (Eq. 5, ``L = MSE(eps^k, eps_theta(A + eps^k; O, k))`` with one
-level per slot) and Fig. "Trajectory Noise Corruptions"; sdp-algorithm.md, section 6:
+level per slot) and Fig. "Trajectory Noise Corruptions"; docs/algorithm.md, section 6:
 
 - constant: one t ~ U{0..T-1} for the whole sequence (plain Diffusion Policy);
 - linear: t rises linearly along the slots from 0 to T-1 (deterministic, as in the authors' code);

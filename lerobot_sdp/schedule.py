@@ -6,7 +6,7 @@ coefficients gathered per slot. The coefficients are those of diffusers' ``DDPMS
 ``DDIMScheduler.step`` (eta = 0), computed from the scheduler's own ``alphas_cumprod`` so that, with
 every slot at one level, one step here equals one diffusers step (tests/test_schedule.py).
 
-Levels live in two units (sdp-algorithm.md, section 3): ``k`` = denoising steps remaining
+Levels live in two units (docs/algorithm.md, section 3): ``k`` = denoising steps remaining
 (0 = clean, N = pure noise) and ``t`` = training timestep fed to the network. ``train_timesteps``
 is the single map between them: the table diffusers' ``set_timesteps(N)`` builds, with
 ``k = 0 -> t = -1`` meaning "clean".

@@ -6,7 +6,7 @@ for each element in the buffer"). We therefore build LeRobot's ``DiffusionCondit
 unchanged and replace its diffusion-step encoder with the paper-faithful per-slot encoder:
 sinusoidal embedding of every slot's level -> flatten (B, T*E) -> MLP -> one (B, E) vector, which
 the U-Net concatenates with the observation conditioning and applies through its usual FiLM.
-The flatten ties the network to one horizon (sdp-algorithm.md, section 5).
+The flatten ties the network to one horizon (docs/algorithm.md, section 5).
 
 ``step_conditioning="film_per_slot"`` is the alternative: LeRobot's step encoder is kept as it is
 (sinusoidal + MLP, DP's weight layout) and applied to every slot's level; the U-Net's conditioning

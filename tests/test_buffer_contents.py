@@ -1,5 +1,5 @@
 """The streaming buffer's *contents*, pinned against expectations computed independently of the code
-under test (sdp-algorithm.md, sections 2, 3 and 7).
+under test (docs/algorithm.md, sections 2, 3 and 7).
 
 `Reference` rebuilds every expected quantity from the paper's formulas and diffusers' own tables:
 the chunk of every slot, the steps remaining k at the start of a call ((chunk + 1) * N/h), the

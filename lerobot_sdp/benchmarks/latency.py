@@ -6,7 +6,7 @@ share (U-Net size, observation encoder, scheduler, N, n_obs_steps, n_action_step
 DP's horizon is set to SDP's horizon for that h, so both denoise the same (B, horizon, A) sequence
 with the same U-Net. That is the paper's "prediction time vs horizon" comparison: DP's cost per chunk
 moves with h only through the horizon length, SDP's divides by h. The one architectural difference
-left is SDP's per-slot step encoder (sdp-algorithm.md, section 5), and it is part of what is timed.
+left is SDP's per-slot step encoder (docs/algorithm.md, section 5), and it is part of what is timed.
 Weights are random (untrained): latency does not depend on their values.
 
 This module is the sweep and its command line; `latency_measure` times the two policies,

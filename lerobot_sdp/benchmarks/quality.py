@@ -49,7 +49,7 @@ BUDGETS = {
     "tiny": Budget(2, 4, (16, 32), 16, 1e-4, 0, 2, 8, "DDIM", episode_length=10, ablation_steps=2),
     # state-based keypoints Push-T on 2 CPU cores: a few hours for the comparison
     "cpu": Budget(20_000, 64, (64, 128, 256), 64, 5e-4, 500, 100, ablation_steps=3_000),
-    # the authors' hyperparameters (sdp-algorithm.md section 9), for a GPU
+    # the authors' hyperparameters (docs/algorithm.md, section 9), for a GPU
     "paper": Budget(100_000, 256, (256, 512, 1024), 256, 1e-4, 500, 100, ablation_steps=20_000),
 }
 
