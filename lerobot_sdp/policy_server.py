@@ -301,11 +301,6 @@ class ClientPolicyServer(PolicyServer):
         if self.policy is not None:
             self.policy.reset()
 
-    def close(self) -> None:
-        """Free what the session holds (it was dropped): its policy, processors, frames and plan."""
-        self._reset_server()
-        self.policy = self.preprocessor = self.postprocessor = None
-
     def SendPolicyInstructions(self, request, context):  # noqa: N802 (gRPC's name)
         specs = read_message(request.data, RemotePolicyConfig)
         problem = policy_problem(specs)
@@ -487,7 +482,7 @@ class SDPPolicyServer(services_pb2_grpc.AsyncInferenceServicer):
             logger.info(
                 "Dropping the session of %s (no call for %.0f s).", gone, now - self.sessions[gone].last_seen
             )
-            self.sessions.pop(gone).close()
+            self.sessions.pop(gone).stop()  # nothing else holds it: its policy is freed with it
 
     def call(self, method: str, request, context):
         """Run one RPC in its client's session; the session counts as busy until the call returns (a
