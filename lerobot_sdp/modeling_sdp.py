@@ -1,10 +1,12 @@
 """Streaming Diffusion Policy (paper: Høeg, Du, Egeland, "Fast Policy Synthesis with Variable Noise
 Diffusion Models", arXiv 2406.04806; the paper's Algorithm 1 is `SDPPolicy.predict_action_chunk`).
 
-`SDPModel` reuses LeRobot Diffusion Policy's observation encoders and U-Net (`DiffusionModel`) and
-replaces what per-slot noise levels change: the U-Net's step encoder (`unet.py`), the loss
-(`noise_schemes.py`, paper Eq. 5) and sampling (`schedule.py`, paper Eq. 2). `SDPPolicy` adds the
-streaming buffer (`buffer.py`), the action primers and EMA.
+`SDPModel` owns the maths. It reuses LeRobot Diffusion Policy's observation encoders and U-Net
+(`DiffusionModel`) and replaces what per-slot noise levels change: the U-Net's step encoder
+(`unet.py`), the loss (`noise_schemes.py`, paper Eq. 5), sampling (`schedule.py`, paper Eq. 2), the
+action primers and one streaming step (`buffer.py`). `SDPPolicy` is LeRobot's interface to it: the
+observation and action queues, the stream (`StreamingBuffer`), EMA, checkpoints; what it accepts as
+input is checked in `observations.py`, and LeRobot's RTC engine is read in `rtc.py`.
 """
 
 import copy
@@ -36,6 +38,16 @@ from .configuration_sdp import SDPConfig
 from .ema import ema_decay, ema_update
 from .model_card import add_introduction
 from .noise_schemes import sample_delays, sample_levels
+from .observations import (
+    check_observation,
+    finite_flags,
+    offline_history,
+    refuse_non_finite,
+    reject_unknown_kwargs,
+    repeated_frame,
+    stack_cameras,
+)
+from .rtc import rest_of_last_chunk, rest_then_chunk
 from .schedule import PerSlotSchedule, StepCoefficients
 from .unet import make_variable_noise, plan_embedding_cache
 from .warm_start import WarmStartReport, merged_stats, warm_start
@@ -61,6 +73,34 @@ class SDPModel(DiffusionModel):
         self.schedule = PerSlotSchedule(self.noise_scheduler, self.num_inference_steps)
         self._compiled_stream = None
 
+    def global_conditioning(self, history: dict[str, Tensor]) -> Tensor:
+        """DP's observation conditioning of a (B, n_obs_steps, ...) history (LeRobot's encoders)."""
+        return self._prepare_global_conditioning(history)
+
+    def primer(
+        self, history: dict[str, Tensor], state_to_action: Tensor, generator: torch.Generator | None
+    ) -> Tensor:
+        """Clean (normalised) sequence a new stream starts from (paper Sec. "Initializing the buffer"):
+        zeros, the newest state repeated as actions (`state_to_action`: scale and offset), or a full
+        denoise. Only "denoise" needs the observation conditioning."""
+        state = history[OBS_STATE]
+        batch_size = state.shape[0]
+        shape = (batch_size, self.geometry.horizon, self.config.action_feature.shape[0])
+        primer = self.config.action_primer
+        if primer == "denoise":
+            return self.conditional_sample(batch_size, self.global_conditioning(history), generator)
+        if primer == "constant":
+            if torch.isnan(state_to_action).any():
+                raise ValueError(
+                    "action_primer='constant' needs the dataset statistics of observation.state and "
+                    "action, and this policy was built without them (or its state and action spaces "
+                    "differ). Use `--policy.action_primer=zero`."
+                )
+            scale, offset = state_to_action
+            current = history[OBS_STATE][:, -1] * scale + offset  # the newest observation
+            return current.unsqueeze(1).expand(shape).contiguous()
+        return torch.zeros(shape, device=state.device, dtype=state.dtype)
+
     def denoiser(self, global_cond: Tensor) -> Denoiser:
         return lambda sample, timesteps: self.unet(sample, timesteps, global_cond=global_cond)
 
@@ -82,7 +122,7 @@ class SDPModel(DiffusionModel):
         after the call so that checking costs no host sync inside it. Compiled as one graph with
         `compile_model` (one graph per number of committed slots)."""
         finite = finite_flags(history)
-        global_cond = self._prepare_global_conditioning(history)
+        global_cond = self.global_conditioning(history)
         chunk, next_sample = stream_step(
             self.schedule, self.geometry, self.denoiser(global_cond), window, plan, noise, committed
         )
@@ -142,7 +182,7 @@ class SDPModel(DiffusionModel):
                 f"The batch holds {trajectory.shape[1]} action frames but SDP's horizon is "
                 f"{self.geometry.horizon}: build the dataset with this config's action_delta_indices."
             )
-        global_cond = self._prepare_global_conditioning(batch)
+        global_cond = self.global_conditioning(batch)
         levels = sample_levels(self.config.noise_schemes, trajectory.shape[0], self.geometry, self.schedule)
         levels, committed = sample_delays(levels, self.geometry)
         eps = torch.randn_like(trajectory)
@@ -157,11 +197,6 @@ class SDPModel(DiffusionModel):
         if mask is None:
             return loss.mean()
         return (loss * mask).sum() / (mask.sum() * loss.shape[-1]).clamp_min(1)
-
-
-def finite_flags(history: dict[str, Tensor]) -> Tensor:
-    """One flag per observation key: True where every value is finite (computed on the device)."""
-    return torch.stack([torch.isfinite(value).all() for value in history.values()])
 
 
 def state_to_action_map(config: SDPConfig, dataset_stats: dict | None) -> Tensor:
@@ -188,22 +223,6 @@ def state_to_action_map(config: SDPConfig, dataset_stats: dict | None) -> Tensor
         create_transition(action=raw[TransitionKey.OBSERVATION][OBS_STATE])
     )[TransitionKey.ACTION]
     return torch.stack([as_action[1] - as_action[0], as_action[0]])
-
-
-def reject_unknown_kwargs(method: str, kwargs: dict) -> None:
-    """LeRobot passes extra keywords through `**kwargs`; SDP refuses what it would silently ignore."""
-    if not kwargs:
-        return
-    hint = (
-        " SDP draws fresh noise into its buffer on every chunk, so one initial noise tensor cannot fix "
-        "its actions: pass `generator=torch.Generator(device).manual_seed(...)` for reproducible actions."
-        if "noise" in kwargs
-        else ""
-    )
-    raise TypeError(
-        f"SDPPolicy.{method}() got unexpected keyword argument(s) {sorted(kwargs)}; it accepts "
-        f"`generator`.{hint}"
-    )
 
 
 class SDPPolicy(PreTrainedPolicy):
@@ -262,32 +281,6 @@ class SDPPolicy(PreTrainedPolicy):
     def _sampling_model(self) -> SDPModel:
         return self.ema_model if self.ema_model is not None and not self.training else self.model
 
-    def _stack_cameras(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
-        if not self.config.image_features:
-            return batch
-        batch = dict(batch)
-        batch[OBS_IMAGES] = torch.stack([batch[key] for key in self.config.image_features], dim=-4)
-        return batch
-
-    def _check_observation(self, batch: dict[str, Tensor], time_axis: bool) -> None:
-        """Every input feature present with its trained shape ((B, To, *shape) with ``time_axis``)."""
-        to = (self.config.n_obs_steps,) if time_axis else ()
-        for key, ft in self.config.input_features.items():
-            if key not in batch:
-                raise ValueError(
-                    f"Observation is missing `{key}`; this policy was trained on "
-                    f"{sorted(self.config.input_features)}. Check the environment's observation type "
-                    "(e.g. `--env.obs_type`) or the processor's rename map."
-                )
-            value = batch[key]
-            if not isinstance(value, Tensor) or tuple(value.shape[1:]) != (*to, *ft.shape):
-                shape = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
-                raise ValueError(
-                    f"Observation `{key}` has shape {shape}, expected "
-                    f"(batch, {', '.join(map(str, (*to, *ft.shape)))}). "
-                    "Check the environment (or dataset) matches the training data."
-                )
-
     @torch.no_grad()
     def select_action(
         self, batch: dict[str, Tensor], generator: torch.Generator | None = None, **kwargs
@@ -297,16 +290,16 @@ class SDPPolicy(PreTrainedPolicy):
         reject_unknown_kwargs("select_action", kwargs)
         # lerobot-eval's batch carries `action: None` (and may carry `task`): queue only the inputs
         batch = {k: v for k, v in batch.items() if k in self.config.input_features}
-        self._check_observation(batch, time_axis=False)
+        check_observation(self.config, batch, time_axis=False)
         queued = self._queues[OBS_STATE]
         if queued and queued[-1].shape[0] != batch[OBS_STATE].shape[0]:
             logging.warning("SDP: the batch size changed without reset(); starting a new stream.")
             self.reset()
         if self._queues[ACTION]:  # between chunks the observation only joins the history
-            self._queues = populate_queues(self._queues, self._stack_cameras(batch))
+            self._queues = populate_queues(self._queues, stack_cameras(self.config, batch))
             return self._queues[ACTION].popleft()
         before = {key: queue.copy() for key, queue in self._queues.items()}
-        self._queues = populate_queues(self._queues, self._stack_cameras(batch))
+        self._queues = populate_queues(self._queues, stack_cameras(self.config, batch))
         try:
             chunk = self.predict_action_chunk(batch, generator=generator)
         except ValueError:  # a refused observation leaves the policy as it was
@@ -314,20 +307,6 @@ class SDPPolicy(PreTrainedPolicy):
             raise
         self._queues[ACTION].extend(chunk.transpose(0, 1))
         return self._queues[ACTION].popleft()
-
-    def _offline_history(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
-        """A dataloader batch, as LeRobot's Diffusion Policy takes it: (B, To, ...) per input feature
-        (extra keys such as `task`, `index` or `action` are ignored); with To = 1 the time axis may be
-        absent, as a (B, C, H, W) image."""
-        history = {}
-        for key, value in batch.items():
-            ft = self.config.input_features.get(key)
-            if ft is None:
-                continue
-            no_time_axis = isinstance(value, Tensor) and value.ndim == len(ft.shape) + 1
-            history[key] = value.unsqueeze(1) if self.config.n_obs_steps == 1 and no_time_axis else value
-        self._check_observation(history, time_axis=True)
-        return self._stack_cameras(history)
 
     def supports_rtc(self) -> bool:
         """SDP runs under LeRobot's RTC engine (`lerobot-rollout --inference.type=rtc`), one streaming
@@ -379,7 +358,7 @@ class SDPPolicy(PreTrainedPolicy):
         if self._queues[OBS_STATE]:
             history = {k: torch.stack(list(q), dim=1) for k, q in self._queues.items() if k != ACTION}
         else:
-            history = self._offline_history(batch)
+            history = offline_history(self.config, batch)
         return self._stream(history, generator, compiled, committed)
 
     @torch.compiler.disable
@@ -391,49 +370,15 @@ class SDPPolicy(PreTrainedPolicy):
         left_over: Tensor | None,
         **kwargs,
     ) -> Tensor:
-        """One RTC engine call: the engine passes one frame (it never sees every control tick, so the
-        history is that frame repeated n_obs_steps times) and the unexecuted rest of what the last
-        call returned, zero-padded to `--inference.rtc.execution_horizon`. The result is that rest
-        followed by the buffer's next chunk; the engine drops its first `inference_delay` actions
-        (executed while this call ran). A policy trained with `max_delay` denoises the chunk with the
-        rest as committed slots, so the chunk is the one that starts when the rest has run; one
-        trained without denoises it as if it started right after the observation."""
+        """One RTC engine call (`rtc.py`): the frame repeated as the history, the rest of the last chunk
+        committed when the policy was trained with `max_delay`, the rest followed by the new chunk."""
         reject_unknown_kwargs("predict_action_chunk", kwargs)
-        frame = {k: v for k, v in batch.items() if k in self.config.input_features}
-        to = self.config.n_obs_steps
-        repeated = {k: v.unsqueeze(1).expand(-1, to, *v.shape[1:]) for k, v in frame.items()}
-        history = self._offline_history(repeated)
-        prefix = self._rtc_prefix(left_over) if left_over is not None else None
+        history = repeated_frame(self.config, batch)
+        rest = rest_of_last_chunk(self.config, left_over) if left_over is not None else None
         # the rest is the end of the buffer's last chunk unless the stream restarted since
-        committed = len(prefix) if prefix is not None and self._buffer.last_chunk is not None else 0
+        committed = len(rest) if rest is not None and self._buffer.last_chunk is not None else 0
         chunk = self._stream(history, generator, compiled, committed if self.config.max_delay else 0)
-        if prefix is None:
-            return chunk
-        return torch.cat([prefix.to(chunk).unsqueeze(0).expand(chunk.shape[0], -1, -1), chunk], dim=1)
-
-    def _rtc_prefix(self, left_over: Tensor) -> Tensor:
-        """The previous chunk's unexecuted actions (T, A), without the engine's zero padding. SDP streams
-        one chunk per call, so the engine must call once per chunk: when fewer than n_action_steps
-        actions are left, and, trained with `max_delay`, when at most that many are."""
-        tb, max_delay = self.config.n_action_steps, self.config.max_delay
-        rows = left_over.reshape(-1, left_over.shape[-1])
-        used = rows.abs().sum(-1) > 0  # the engine pads with zero rows; the last used row ends it
-        n = int((used * torch.arange(1, len(used) + 1, device=used.device)).max())
-        if rows.shape[0] < tb or n >= tb:
-            raise ValueError(
-                f"SDP under the RTC engine streams one chunk of {tb} actions per call, so it must be called "
-                f"when fewer than {tb} actions are left (got {n} left of {rows.shape[0]} passed). Run "
-                f"`lerobot-rollout --inference.type=rtc --inference.queue_threshold=K` with K < {tb} "
-                f"(about the inference time in control ticks) and --inference.rtc.execution_horizon >= {tb}."
-            )
-        if max_delay and n > max_delay:
-            raise ValueError(
-                f"This SDP policy was trained for at most max_delay={max_delay} actions left when a chunk "
-                f"is requested, and the RTC engine called with {n} left. Run `lerobot-rollout "
-                f"--inference.type=rtc --inference.queue_threshold=K` with K <= {max_delay} (the inference "
-                "time in control ticks), or train with a larger `--policy.max_delay`."
-            )
-        return rows[:n]
+        return rest_then_chunk(rest, chunk)
 
     def _stream(
         self,
@@ -450,7 +395,7 @@ class SDPPolicy(PreTrainedPolicy):
         model = self._sampling_model()
         fresh = self._buffer.sample is None
         if fresh:
-            self._buffer.prime(self._primer(model, history, generator), generator)
+            self._buffer.prime(model.primer(history, self.state_to_action, generator), generator)
         run = model.streaming_step_fn(history[OBS_STATE].device, compiled)
 
         def step(
@@ -458,7 +403,7 @@ class SDPPolicy(PreTrainedPolicy):
         ) -> tuple[Tensor, Tensor]:
             model.cache_step_embeddings(plan)
             chunk, next_sample, finite = run(history, window, plan, noise, committed)
-            self._refuse_non_finite(history, finite)  # the one host read, after the chunk is computed
+            refuse_non_finite(history, finite)  # the one host read, after the chunk is computed
             return chunk, next_sample
 
         try:
@@ -468,40 +413,6 @@ class SDPPolicy(PreTrainedPolicy):
                 self._buffer.clear()
             raise
 
-    @staticmethod
-    def _refuse_non_finite(history: dict[str, Tensor], finite: Tensor) -> None:
-        """Raise, naming the keys, when an observation held NaN or inf (the buffer is left as it was)."""
-        bad = [f"`{key}`" for key, ok in zip(history, finite.tolist(), strict=True) if not ok]
-        if bad:
-            raise ValueError(f"Observation {', '.join(bad)} contains NaN or inf; refusing to act on it.")
-
-    def _primer(
-        self,
-        model: SDPModel,
-        history: dict[str, Tensor],
-        generator: torch.Generator | None,
-    ) -> Tensor:
-        """Clean (normalised) sequence the buffer starts from (paper Sec. "Initializing the buffer").
-        Only "denoise" needs the observation conditioning."""
-        state = history[OBS_STATE]
-        batch_size = state.shape[0]
-        shape = (batch_size, self.geometry.horizon, self.config.action_feature.shape[0])
-        primer = self.config.action_primer
-        if primer == "denoise":
-            global_cond = model._prepare_global_conditioning(history)
-            return model.conditional_sample(batch_size, global_cond, generator)
-        if primer == "constant":
-            if torch.isnan(self.state_to_action).any():
-                raise ValueError(
-                    "action_primer='constant' needs the dataset statistics of observation.state and "
-                    "action, and this policy was built without them (or its state and action spaces "
-                    "differ). Use `--policy.action_primer=zero`."
-                )
-            scale, offset = self.state_to_action
-            current = history[OBS_STATE][:, -1] * scale + offset  # the newest observation
-            return current.unsqueeze(1).expand(shape).contiguous()
-        return torch.zeros(shape, device=state.device, dtype=state.dtype)
-
     def forward(self, batch: dict[str, Tensor]) -> tuple[Tensor, None]:
         """Training loss on a dataset batch of (B, n_obs_steps, ...) observations and (B, horizon, A)
         actions."""
@@ -510,7 +421,7 @@ class SDPPolicy(PreTrainedPolicy):
             for key in self.config.image_features:
                 if self.config.n_obs_steps == 1 and batch[key].ndim == 4:
                     batch[key] = batch[key].unsqueeze(1)
-        return self.model.compute_loss(self._stack_cameras(batch)), None
+        return self.model.compute_loss(stack_cameras(self.config, batch)), None
 
     def generate_model_card(self, *args, **kwargs):
         """LeRobot's card, introduced as SDP (LeRobot's template only knows its built-in policies)."""

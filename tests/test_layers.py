@@ -20,6 +20,8 @@ LAYERS = {
         "dataset_writing",
         "lerobot_cli",
         "shipped_configs",
+        "observations",
+        "rtc",
         "chunk_cost",
     ],
     "tasks": ["robots", "pusht", "robomimic", "policy_server", "protocol_pickle"],

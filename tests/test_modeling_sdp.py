@@ -277,7 +277,7 @@ def test_constant_primer_starts_from_the_current_state():
     a_min, a_max = torch.tensor(PUSHT_STATS["action"]["min"]), torch.tensor(PUSHT_STATS["action"]["max"])
     norm_state = (raw - s_min) / (s_max - s_min) * 2 - 1
     batch = {"observation.state": norm_state.unsqueeze(1)}
-    primer = policy._primer(policy.model, batch, None)
+    primer = policy.model.primer(batch, policy.state_to_action, None)
     torch.testing.assert_close(primer[0, 0], ((raw - a_min) / (a_max - a_min) * 2 - 1)[0])
 
 
@@ -423,7 +423,7 @@ def test_dps_generate_actions_samples_the_first_executed_chunk():
     noise = torch.randn(3, cfg.horizon, 2)
     with torch.no_grad():
         actions = model.generate_actions(batch, noise=noise)
-        full = model.conditional_sample(3, model._prepare_global_conditioning(batch), noise=noise)
+        full = model.conditional_sample(3, model.global_conditioning(batch), noise=noise)
     assert actions.shape == (3, cfg.n_action_steps, 2)
     assert torch.equal(actions, full[:, cfg.geometry.executed])
     with pytest.raises(ValueError, match=r"noise has shape \(3, 5, 2\); SDP's initial sample is"):

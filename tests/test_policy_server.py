@@ -508,3 +508,11 @@ def test_a_session_busy_in_a_long_call_is_not_dropped_as_idle(server_mod):
     time.sleep(0.1)  # now idle for longer than the timeout: the next call from another client drops it
     service.call("Ready", None, other)
     assert slow.peer() not in service.sessions and session.in_flight == 0
+
+
+def test_the_server_listens_on_localhost_unless_told_otherwise(server_mod):
+    assert server_mod.SDPPolicyServerConfig().host in server_mod.LOOPBACK
+    with pytest.raises(ValueError, match="max_calls_per_client must be at least 1"):
+        server_mod.SDPPolicyServerConfig(max_calls_per_client=0)
+    with pytest.raises(ValueError, match="receive_timeout_s must be positive"):
+        server_mod.SDPPolicyServerConfig(receive_timeout_s=0)

@@ -8,6 +8,7 @@ from sdp_test_utils import history, observation, tiny_config
 from lerobot_sdp import SDPPolicy
 from lerobot_sdp.buffer import StreamNoise, step_noise
 from lerobot_sdp.noise_schemes import NoiseSchemeWeights, sample_levels
+from lerobot_sdp.observations import offline_history
 from lerobot_sdp.schedule import gaussian_like
 from lerobot_sdp.unet import PlanEmbeddingCache
 
@@ -119,7 +120,7 @@ def test_training_levels_are_drawn_on_the_models_device():
 def explain(policy, image: bool):
     cfg = policy.config
     model = policy._sampling_model()
-    hist = policy._offline_history(history(cfg, 1))
+    hist = offline_history(cfg, history(cfg, 1))
     policy._buffer.prime(torch.zeros(1, policy.geometry.horizon, 2))
     sample = policy._buffer.sample
     plan = policy._buffer.plan(sample.device, 1)

@@ -35,6 +35,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from ..observations import stack_cameras
 from .latency_measure import (
     OBSERVATIONS,
     UNET_PRESETS,
@@ -92,9 +93,10 @@ def unet_call_ms(policy, observation: dict, clock: Clock, repeats: int, compile_
     to = policy.config.n_obs_steps
     # the cameras stacked as `select_action` stacks them before they join the history
     history = {
-        k: v.unsqueeze(1).expand(-1, to, *v.shape[1:]) for k, v in policy._stack_cameras(observation).items()
+        k: v.unsqueeze(1).expand(-1, to, *v.shape[1:])
+        for k, v in stack_cameras(policy.config, observation).items()
     }
-    global_cond = model._prepare_global_conditioning(history)
+    global_cond = model.global_conditioning(history)
 
     def run() -> None:
         if compile_mode == "reduce-overhead":
