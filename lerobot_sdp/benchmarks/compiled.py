@@ -48,6 +48,7 @@ from .latency_measure import (
     observation_stream,
 )
 from .latency_report import environment
+from .report import table
 
 logger = logging.getLogger(__name__)
 JSON_NAME = "compiled.json"
@@ -232,31 +233,51 @@ def summarise(policies: dict, times: dict[str, list[float]], actions: dict[str, 
 
 def markdown_table(report: dict) -> str:
     floor_ms = report["bandwidth_floor_per_nfe_ms"]
-    header = (
-        "| obs | batch | sampler | h | SDP eager / compiled ms per chunk | speedup | DP eager / compiled ms "
-        "| speedup | SDP compiled / DP compiled | per-NFE compiled SDP ms | floor ms | x floor "
-        "| max abs action diff | SDP U-Net call eager / compiled ms "
-        "| SDP bookkeeping eager / compiled ms | % of a U-Net call |"
-    )
-    lines = [header, "|" + "---|" * (header.count("|") - 1)]
+    header = [
+        "obs",
+        "batch",
+        "sampler",
+        "h",
+        "SDP eager / compiled ms per chunk",
+        "speedup",
+        "DP eager / compiled ms",
+        "speedup",
+        "SDP compiled / DP compiled",
+        "per-NFE compiled SDP ms",
+        "floor ms",
+        "x floor",
+        "max abs action diff",
+        "SDP U-Net call eager / compiled ms",
+        "SDP bookkeeping eager / compiled ms",
+        "% of a U-Net call",
+    ]
     s = report["settings"]
+    rows = []
     for r in report["results"]:
         per_nfe = r["sdp_compiled"]["per_nfe_ms"]
         bookkeeping = r["sdp_bookkeeping_fraction_of_unet_call"]
-        lines.append(
-            f"| {s['obs']} | {r['batch_size']} | {s['sampler']} | {s['n_chunks']} "
-            f"| {r['sdp_eager']['chunk_ms_p50']:.1f} / {r['sdp_compiled']['chunk_ms_p50']:.1f} "
-            f"| {r['sdp_compiled_speedup']:.2f}x "
-            f"| {r['dp_eager']['chunk_ms_p50']:.1f} / {r['dp_compiled']['chunk_ms_p50']:.1f} "
-            f"| {r['dp_compiled_speedup']:.2f}x "
-            f"| {r['sdp_compiled']['chunk_ms_p50'] / r['dp_compiled']['chunk_ms_p50']:.3f} "
-            f"| {per_nfe:.2f} | {floor_ms:.2f} | {per_nfe / floor_ms:.1f} "
-            f"| {r['sdp_compiled_max_abs_action_diff']:.1e} "
-            f"| {r['sdp_unet_call_ms']['eager']:.2f} / {r['sdp_unet_call_ms']['compiled']:.2f} "
-            f"| {r['sdp_bookkeeping_ms']['eager']:.2f} / {r['sdp_bookkeeping_ms']['compiled']:.2f} "
-            f"| {100 * bookkeeping['eager']:.1f} / {100 * bookkeeping['compiled']:.1f} |"
+        sdp, dp = r["sdp_compiled"]["chunk_ms_p50"], r["dp_compiled"]["chunk_ms_p50"]
+        rows.append(
+            [
+                s["obs"],
+                r["batch_size"],
+                s["sampler"],
+                s["n_chunks"],
+                f"{r['sdp_eager']['chunk_ms_p50']:.1f} / {sdp:.1f}",
+                f"{r['sdp_compiled_speedup']:.2f}x",
+                f"{r['dp_eager']['chunk_ms_p50']:.1f} / {dp:.1f}",
+                f"{r['dp_compiled_speedup']:.2f}x",
+                f"{sdp / dp:.3f}",
+                f"{per_nfe:.2f}",
+                f"{floor_ms:.2f}",
+                f"{per_nfe / floor_ms:.1f}",
+                f"{r['sdp_compiled_max_abs_action_diff']:.1e}",
+                f"{r['sdp_unet_call_ms']['eager']:.2f} / {r['sdp_unet_call_ms']['compiled']:.2f}",
+                f"{r['sdp_bookkeeping_ms']['eager']:.2f} / {r['sdp_bookkeeping_ms']['compiled']:.2f}",
+                f"{100 * bookkeeping['eager']:.1f} / {100 * bookkeeping['compiled']:.1f}",
+            ]
         )
-    return "\n".join(lines)
+    return "\n".join(table(header, rows))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -34,6 +34,7 @@ from ..chunk_cost import load_policy, stream_cost
 from ..pusht.evaluation import EVAL_SEED, OBS_TYPE
 from .episodes import figures
 from .policy_args import add_policy_argument, parse_policies
+from .report import table, write_json
 from .virtual_clock import MODES, DelayedControl, mode_problem
 
 FPS = 10  # Push-T's control rate
@@ -160,7 +161,7 @@ def run(args: argparse.Namespace) -> dict:
     for name, path in paths.items():  # first, while nothing else of this run competes for the CPU
         if name not in results["latency"]:
             results["latency"][name] = measured_delay(path, args.num_threads)
-            results_file.write_text(json.dumps(results, indent=2))
+            write_json(results_file, results)
     torch.set_num_threads(EVAL_THREADS)
     cells = [
         (name, row, mode, d)
@@ -179,7 +180,7 @@ def run(args: argparse.Namespace) -> dict:
             if problem
             else {"row": row, "delay": d, **evaluate(policies[name], paths[name], mode, d, args)}
         )
-        results_file.write_text(json.dumps(results, indent=2))
+        write_json(results_file, results)
     (args.output_dir / "results.md").write_text(markdown(results))
     plot(results, args.output_dir / "delay.png")
     print(markdown(results))
@@ -201,8 +202,6 @@ def markdown(results: dict) -> str:
         f"{settings['fps']} Hz, inference delay d in control ticks on a virtual clock; "
         f"{settings['machine']}.",
         "",
-        "| row | " + " | ".join(f"d = {d}" for d in delays) + " |",
-        "|---|" + "---|" * len(delays),
     ]
 
     def cell_text(cell: dict | None) -> str:
@@ -215,16 +214,23 @@ def markdown(results: dict) -> str:
             f"{cell['pc_success']:.0f} ± {cell['pc_success_se']:.0f} %"
         )
 
-    for row, by_delay in table_rows(results).items():
-        out.append(f"| {row} | " + " | ".join(cell_text(by_delay.get(d)) for d in delays) + " |")
+    rows = table_rows(results).items()
+    out += table(
+        ["row", *(f"d = {d}" for d in delays)], [[r, *(cell_text(c.get(d)) for d in delays)] for r, c in rows]
+    )
     out += ["", "Each cell: avg_max_reward ± s.e. / success ± s.e.", ""]
-    out += ["| policy | denoiser calls / chunk | latency / chunk (batch 1) | delay on this machine |"]
-    out += ["|---|---|---|---|"]
-    for name, lat in results["latency"].items():
-        out.append(
-            f"| {name} | {lat['denoiser_calls_per_chunk']:g} | {lat['latency_per_chunk_ms']:.0f} ms "
-            f"({lat['num_threads']} threads) | {lat['delay_ticks']} ticks |"
-        )
+    out += table(
+        ["policy", "denoiser calls / chunk", "latency / chunk (batch 1)", "delay on this machine"],
+        [
+            [
+                name,
+                f"{lat['denoiser_calls_per_chunk']:g}",
+                f"{lat['latency_per_chunk_ms']:.0f} ms ({lat['num_threads']} threads)",
+                f"{lat['delay_ticks']} ticks",
+            ]
+            for name, lat in results["latency"].items()
+        ],
+    )
     return "\n".join(out) + "\n"
 
 

@@ -37,6 +37,7 @@ from ..processor_sdp import lacks_split_state_step
 from ..pusht.evaluation import EVAL_SEED
 from .episodes import figures
 from .policy_args import add_policy_argument, parse_policies
+from .report import table, with_se, write_json
 
 ENGINES = ("sync", "rtc", "async")
 FPS = 10
@@ -248,23 +249,35 @@ def measure(name: str, path: Path, engine: str, args) -> dict:
 
 
 def markdown(rows: list[dict]) -> str:
-    out = [
-        "| policy | engine | episodes | avg_max_reward | success % | missed ticks / episode (max) | "
-        "target jump p95 (px, median episode) |",
-        "|" + "---|" * 7,
+    header = [
+        "policy",
+        "engine",
+        "episodes",
+        "avg_max_reward",
+        "success %",
+        "missed ticks / episode (max)",
+        "target jump p95 (px, median episode)",
+        "note",
     ]
+    cells = []
     for r in rows:
         if "avg_max_reward" not in r:
-            out.append(f"| {r['policy']} | {r['engine']} | {r.get('error', '')} | | | | |")
+            cells.append([r["policy"], r["engine"], "", "", "", "", "", r.get("error", "")])
             continue
         jump = r["action_jump_p95_px_median"]
-        out.append(
-            f"| {r['policy']} | {r['engine']} | {r['n_episodes']} | {r['avg_max_reward']:.3f} ± "
-            f"{r['avg_max_reward_se']:.3f} | {r['pc_success']:.0f} ± {r['pc_success_se']:.0f} | "
-            f"{r['missed_ticks_per_episode']:.1f} ({r['missed_ticks_max']}) | "
-            f"{'' if jump is None else f'{jump:.1f}'} |" + (f" {r['error']}" if "error" in r else "")
+        cells.append(
+            [
+                r["policy"],
+                r["engine"],
+                r["n_episodes"],
+                with_se(r, "avg_max_reward", 3),
+                with_se(r, "pc_success", 0),
+                f"{r['missed_ticks_per_episode']:.1f} ({r['missed_ticks_max']})",
+                "" if jump is None else f"{jump:.1f}",
+                r.get("error", ""),
+            ]
         )
-    return "\n".join(out) + "\n"
+    return "\n".join(table(header, cells)) + "\n"
 
 
 def run(args: argparse.Namespace) -> list[dict]:
@@ -279,7 +292,7 @@ def run(args: argparse.Namespace) -> list[dict]:
         for engine in args.engines:
             print(f"[deployment] {name} / {engine}: {args.episodes} episodes on pusht_sim", flush=True)
             rows.append(measure(name, path, engine, args))
-            (args.output_dir / "results.json").write_text(json.dumps({"fps": FPS, "rows": rows}, indent=2))
+            write_json(args.output_dir / "results.json", {"fps": FPS, "rows": rows})
     table = markdown(rows)
     (args.output_dir / "results.md").write_text(table)
     print(table)

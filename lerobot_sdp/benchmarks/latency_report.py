@@ -2,7 +2,6 @@
 
 import argparse
 import importlib.metadata
-import json
 import os
 import platform
 from pathlib import Path
@@ -12,6 +11,8 @@ import torch
 from lerobot.policies.pretrained import PreTrainedPolicy
 
 from .latency_measure import Case, Cycle, expected_denoiser_calls
+from .report import table
+from .report import write_json as write_report
 
 TARGET_RATIO = 1.1  # the target: SDP / DP time per chunk <= 1.1 / h
 
@@ -109,29 +110,45 @@ def measured_results(results: list[dict]) -> list[dict]:
 
 def markdown_table(results: list[dict]) -> str:
     """The summary printed at the end (and pasted into docs/benchmarks.md): one row per measured case."""
-    header = (
-        "| device | batch | sampler | h | horizon | calls/chunk SDP / DP | SDP chunk p50 / p95 ms "
-        "| DP chunk p50 / p95 ms | per action p50 ms SDP / DP | SDP primer ms | SDP/DP (paired) "
-        "| target 1.1/h | bookkeeping p50, % of a U-Net call, SDP / DP |"
-    )
-    lines = [header, "|" + "---|" * (header.count("|") - 1)]
+    header = [
+        "device",
+        "batch",
+        "sampler",
+        "h",
+        "horizon",
+        "calls/chunk SDP / DP",
+        "SDP chunk p50 / p95 ms",
+        "DP chunk p50 / p95 ms",
+        "per action p50 ms SDP / DP",
+        "SDP primer ms",
+        "SDP/DP (paired)",
+        "target 1.1/h",
+        "bookkeeping p50, % of a U-Net call, SDP / DP",
+    ]
+    rows = []
     for r in measured_results(results):
         sdp, dp, ratio = r["sdp"], r["dp"], r["ratio"]
-        lines.append(
-            f"| {r['device']} | {r['batch_size']} | {r['sampler']} | {r['n_chunks']} | {r['horizon']} "
-            f"| {sdp['denoiser_calls_per_chunk']} / {dp['denoiser_calls_per_chunk']} "
-            f"| {sdp['chunk_latency_ms']['p50']:.1f} / {sdp['chunk_latency_ms']['p95']:.1f} "
-            f"| {dp['chunk_latency_ms']['p50']:.1f} / {dp['chunk_latency_ms']['p95']:.1f} "
-            f"| {sdp['per_action_ms']['p50']:.2f} / {dp['per_action_ms']['p50']:.2f} "
-            f"| {sdp['primer']['latency_ms']:.1f} "
-            f"| {ratio['sdp_over_dp_chunk_p50']:.3f} ({ratio['sdp_over_dp_chunk_paired_p50']:.3f}) "
-            f"| {ratio['target']:.3f} "
-            f"| {100 * sdp['bookkeeping_fraction_of_denoiser_call']['p50']:.1f} "
-            f"/ {100 * dp['bookkeeping_fraction_of_denoiser_call']['p50']:.1f} |"
+        rows.append(
+            [
+                r["device"],
+                r["batch_size"],
+                r["sampler"],
+                r["n_chunks"],
+                r["horizon"],
+                f"{sdp['denoiser_calls_per_chunk']} / {dp['denoiser_calls_per_chunk']}",
+                f"{sdp['chunk_latency_ms']['p50']:.1f} / {sdp['chunk_latency_ms']['p95']:.1f}",
+                f"{dp['chunk_latency_ms']['p50']:.1f} / {dp['chunk_latency_ms']['p95']:.1f}",
+                f"{sdp['per_action_ms']['p50']:.2f} / {dp['per_action_ms']['p50']:.2f}",
+                f"{sdp['primer']['latency_ms']:.1f}",
+                f"{ratio['sdp_over_dp_chunk_p50']:.3f} ({ratio['sdp_over_dp_chunk_paired_p50']:.3f})",
+                f"{ratio['target']:.3f}",
+                f"{100 * sdp['bookkeeping_fraction_of_denoiser_call']['p50']:.1f} "
+                f"/ {100 * dp['bookkeeping_fraction_of_denoiser_call']['p50']:.1f}",
+            ]
         )
-    return "\n".join(lines)
+    return "\n".join(table(header, rows))
 
 
 def write_json(report: dict, output_dir: Path) -> None:
     # default=str: paths and samplers are written as their command-line spelling.
-    (output_dir / JSON_NAME).write_text(json.dumps(report, indent=2, default=str))
+    write_report(output_dir / JSON_NAME, report)

@@ -25,6 +25,7 @@ from ..pusht.data import keypoints_dataset_args
 from ..pusht.evaluation import EVAL_SEED, OBS_TYPE, pusht_eval_args
 from . import cost_sweep
 from .curves import checkpoint_steps, episode_stats, plot, step_logs, train_wall_s, wall_time_at
+from .report import table, with_se, write_json
 
 DP_HORIZON = 16  # LeRobot's reference Push-T Diffusion Policy (lerobot/diffusion_pusht)
 
@@ -245,53 +246,66 @@ def status(runs: list[Run], output_dir: Path) -> list[str]:
 
 
 def markdown(rows: dict[str, dict], budget_name: str, budget: Budget) -> str:
-    head = (
-        "| run | avg_max_reward | pc_success | paper score | denoiser calls / chunk "
-        "| eval latency / chunk (ms, CPU, batch 1) | train wall (s) | steps | episodes |"
-    )
-    sep = "|" + "---|" * 9
+    header = [
+        "run",
+        "avg_max_reward",
+        "pc_success",
+        "paper score",
+        "denoiser calls / chunk",
+        "eval latency / chunk (ms, CPU, batch 1)",
+        "train wall (s)",
+        "steps",
+        "episodes",
+    ]
 
-    def line(name, row, paper=""):
-        return (
-            f"| {name} | {with_se(row, 'avg_max_reward', 3)} | {with_se(row, 'pc_success', 1)} | {paper} | "
-            f"{row['denoiser_calls_per_chunk']:g} | {row['latency_per_chunk_ms']:.1f} | "
-            f"{row['train_wall_s']:.0f} | "
-            f"{row['steps']} | {row['n_episodes']} |"
-        )
+    def cells(name, row, paper=""):
+        return [
+            name,
+            with_se(row, "avg_max_reward", 3),
+            with_se(row, "pc_success", 1),
+            paper,
+            f"{row['denoiser_calls_per_chunk']:g}",
+            f"{row['latency_per_chunk_ms']:.1f}",
+            f"{row['train_wall_s']:.0f}",
+            row["steps"],
+            row["n_episodes"],
+        ]
 
-    out = [f"Budget `{budget_name}`: {asdict(budget)}", "", "### Comparison", "", head, sep]
-    out += [line(n, rows[n]) for n in ("dp", "sdp_h2", "sdp_h4") if n in rows]
-    out += [line(n, rows[n]) for n in rows if n.startswith("dp_horizon")]
+    compared = [n for n in ("dp", "sdp_h2", "sdp_h4") if n in rows] + [
+        n for n in rows if n.startswith("dp_horizon")
+    ]
+    out = [f"Budget `{budget_name}`: {asdict(budget)}", "", "### Comparison", ""]
+    out += table(header, [cells(n, rows[n]) for n in compared])
     warm = [n for n in rows if n.startswith(("warm_", "scratch_"))]
     if warm:
-        out += ["", "### Warm start from the trained DP (SDP h = 2, a tenth of DP's steps)", "", head, sep]
-        out += [line(n, rows[n]) for n in ("dp", "sdp_h2", *warm) if n in rows]
+        out += ["", "### Warm start from the trained DP (SDP h = 2, a tenth of DP's steps)", ""]
+        out += table(header, [cells(n, rows[n]) for n in ("dp", "sdp_h2", *warm) if n in rows])
     ablations = [n for n in rows if n.startswith(("scheme_", "primer_"))]
     if ablations:
-        out += ["", f"### Ablations (reduced budget: {budget.ablation_steps} steps)", "", head, sep]
         paper = {f"scheme_{k}": v for k, v in PAPER_SCHEMES.items()} | {
             f"primer_{k}": v for k, v in PAPER_PRIMERS.items()
         }
-        out += [line(n, rows[n], f"{paper[n]:.2f}") for n in ablations]
+        out += ["", f"### Ablations (reduced budget: {budget.ablation_steps} steps)", ""]
+        out += table(header, [cells(n, rows[n], f"{paper[n]:.2f}") for n in ablations])
     curves = [n for n in rows if rows[n].get("curve")]
     if curves:
         out += ["", "### Learning curves (every checkpoint on the same episodes)", ""]
-        out += [
-            "| run | step | train wall (min) | avg_max_reward | pc_success | episodes |",
-            "|" + "---|" * 6,
-        ]
-        out += [
-            f"| {n} | {p['step']} | {p['train_wall_s'] / 60:.1f} | {with_se(p, 'avg_max_reward', 3)} | "
-            f"{with_se(p, 'pc_success', 1)} | {p['n_episodes']} |"
-            for n in curves
-            for p in rows[n]["curve"]
-        ]
+        out += table(
+            ["run", "step", "train wall (min)", "avg_max_reward", "pc_success", "episodes"],
+            [
+                [
+                    n,
+                    p["step"],
+                    f"{p['train_wall_s'] / 60:.1f}",
+                    with_se(p, "avg_max_reward", 3),
+                    with_se(p, "pc_success", 1),
+                    p["n_episodes"],
+                ]
+                for n in curves
+                for p in rows[n]["curve"]
+            ],
+        )
     return "\n".join(out) + "\n"
-
-
-def with_se(row: dict, key: str, digits: int) -> str:
-    value = f"{row[key]:.{digits}f}"
-    return f"{value} ± {row[key + '_se']:.{digits}f}" if key + "_se" in row else value
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -418,7 +432,7 @@ def run(args: argparse.Namespace) -> dict:
 
 def write_report(report: dict, output_dir: Path, budget: Budget) -> None:
     """OUTPUT_DIR/results.json and its tables, results.md."""
-    (output_dir / "results.json").write_text(json.dumps(report, indent=2))
+    write_json(output_dir / "results.json", report)
     text = markdown(report["rows"], report["budget"], budget)
     text += sweep_markdown(report["sweep"]) if "sweep" in report else ""
     (output_dir / "results.md").write_text(text)
@@ -447,12 +461,19 @@ def run_sweep(selected: list[Run], output_dir: Path, budget: Budget, device: str
 
 def sweep_markdown(sweeps: dict[str, list[dict]]) -> str:
     out = ["", "### Quality against cost (the final models at several samplers)", ""]
-    out += ["| run | sampler | denoiser calls / chunk | latency / chunk (ms) | avg_max_reward | pc_success |"]
-    out += ["|" + "---|" * 6]
-    out += [
-        f"| {name} | {p['sampler']} | {p['denoiser_calls_per_chunk']:g} | {p['latency_per_chunk_ms']:.1f} | "
-        f"{with_se(p, 'avg_max_reward', 3)} | {with_se(p, 'pc_success', 1)} |"
-        for name, points in sweeps.items()
-        for p in points
-    ]
+    out += table(
+        ["run", "sampler", "denoiser calls / chunk", "latency / chunk (ms)", "avg_max_reward", "pc_success"],
+        [
+            [
+                name,
+                p["sampler"],
+                f"{p['denoiser_calls_per_chunk']:g}",
+                f"{p['latency_per_chunk_ms']:.1f}",
+                with_se(p, "avg_max_reward", 3),
+                with_se(p, "pc_success", 1),
+            ]
+            for name, points in sweeps.items()
+            for p in points
+        ],
+    )
     return "\n".join(out) + "\n"

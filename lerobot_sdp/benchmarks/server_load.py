@@ -15,7 +15,6 @@ server's console in OUTPUT_DIR/logs/. Run it as the only heavy process on the ma
 """
 
 import argparse
-import json
 import signal
 import statistics
 import threading
@@ -30,6 +29,7 @@ from ..pusht.evaluation import EVAL_SEED
 from ..robots import PushTSimConfig
 from .deployment import FPS, Logged, robot_ready_problem, wait_for_port
 from .policy_args import add_policy_argument, parse_policies
+from .report import table, write_json
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -129,19 +129,24 @@ def one_load(path: Path, config: PreTrainedConfig, n: int, args) -> dict:
 
 
 def markdown(name: str, rows: list[dict]) -> str:
-    out = [
-        f"Policy `{name}`, {FPS} Hz.",
-        "",
-        "| clients | missed ticks per client (max) | longest gap between actions (s) | ticks per episode | "
-        "avg_max_reward |",
-        "|---|---|---|---|---|",
+    header = [
+        "clients",
+        "missed ticks per client (max)",
+        "longest gap between actions (s)",
+        "ticks per episode",
+        "avg_max_reward",
     ]
-    for r in rows:
-        out.append(
-            f"| {r['clients']} | {r['missed_ticks_mean']:.1f} ({r['missed_ticks_max']}) | "
-            f"{r['longest_gap_s']:.2f} | {r['ticks_mean']:.0f} | {r['avg_max_reward']:.3f} |"
-        )
-    return "\n".join(out) + "\n"
+    cells = [
+        [
+            r["clients"],
+            f"{r['missed_ticks_mean']:.1f} ({r['missed_ticks_max']})",
+            f"{r['longest_gap_s']:.2f}",
+            f"{r['ticks_mean']:.0f}",
+            f"{r['avg_max_reward']:.3f}",
+        ]
+        for r in rows
+    ]
+    return "\n".join([f"Policy `{name}`, {FPS} Hz.", "", *table(header, cells)]) + "\n"
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -161,7 +166,7 @@ def run(args: argparse.Namespace) -> dict:
     for n in args.clients:
         print(f"[server-load] {n} clients", flush=True)
         result["rows"].append(one_load(path, config, n, args))
-        (args.output_dir / "results.json").write_text(json.dumps(result, indent=2))
+        write_json(args.output_dir / "results.json", result)
     table = markdown(name, result["rows"])
     (args.output_dir / "results.md").write_text(table)
     print(table)

@@ -30,6 +30,7 @@ from pathlib import Path
 from .. import shipped_configs
 from ..lerobot_cli import lerobot_bin
 from .curves import parse_step
+from .report import table, write_json
 
 STEP_LOG = re.compile(r"step:(\d+(?:\.\d+)?[KM]?) .*updt_s:([\d.]+) data_s:([\d.]+)")
 THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OMP_WAIT_POLICY")
@@ -125,11 +126,18 @@ def run(args: argparse.Namespace) -> None:
     for row in rows:
         row["speedup_over_first"] = row["samples_per_s"] / base
     report = {"config_path": str(args.config_path), "rows": rows}
-    (args.output_dir / "throughput.json").write_text(json.dumps(report, indent=2))
-    print("| variant | busy procs | samples/s | steps/s | x first | updt_s | data_s (last log) |")
-    print("|---|---|---|---|---|---|---|")
-    for r in rows:
-        print(
-            f"| {r['variant']} | {r['busy_processes']} | {r['samples_per_s']:.0f} | {r['steps_per_s']:.2f} "
-            f"| {r['speedup_over_first']:.2f} | {r['last_log_updt_s']:.3f} | {r['last_log_data_s']:.3f} |"
-        )
+    write_json(args.output_dir / "throughput.json", report)
+    header = ["variant", "busy procs", "samples/s", "steps/s", "x first", "updt_s", "data_s (last log)"]
+    cells = [
+        [
+            r["variant"],
+            r["busy_processes"],
+            f"{r['samples_per_s']:.0f}",
+            f"{r['steps_per_s']:.2f}",
+            f"{r['speedup_over_first']:.2f}",
+            f"{r['last_log_updt_s']:.3f}",
+            f"{r['last_log_data_s']:.3f}",
+        ]
+        for r in rows
+    ]
+    print("\n".join(table(header, cells)))

@@ -21,6 +21,7 @@ from pathlib import Path
 import torch
 
 from .. import shipped_configs
+from .report import table, write_json
 
 PHASES = ("data", "preprocess", "forward", "backward", "optimizer", "ema")
 
@@ -153,14 +154,18 @@ def profile_policy(args: argparse.Namespace, policy_type: str) -> dict:
 
 
 def markdown(rows: list[dict]) -> str:
-    head = "| policy | horizon | " + " | ".join(f"{p} (ms)" for p in PHASES) + " | step (ms) | samples/s |"
-    lines = [head, "|" + "---|" * (len(PHASES) + 4)]
-    for r in rows:
-        phases = " | ".join(f"{r['phase_ms'][p]:.1f}" for p in PHASES)
-        lines.append(
-            f"| {r['policy']} | {r['horizon']} | {phases} | {r['step_ms']:.1f} | {r['samples_per_s']:.0f} |"
-        )
-    return "\n".join(lines)
+    header = ["policy", "horizon", *(f"{p} (ms)" for p in PHASES), "step (ms)", "samples/s"]
+    cells = [
+        [
+            r["policy"],
+            r["horizon"],
+            *(f"{r['phase_ms'][p]:.1f}" for p in PHASES),
+            f"{r['step_ms']:.1f}",
+            f"{r['samples_per_s']:.0f}",
+        ]
+        for r in rows
+    ]
+    return "\n".join(table(header, cells))
 
 
 def run(args: argparse.Namespace) -> None:
@@ -170,7 +175,7 @@ def run(args: argparse.Namespace) -> None:
     if {"sdp", "diffusion"} <= {r["policy"] for r in rows}:
         by = {r["policy"]: r for r in rows}
         report["sdp_over_dp_model_time"] = by["sdp"]["model_ms"] / by["diffusion"]["model_ms"]
-    (args.output_dir / "train_profile.json").write_text(json.dumps(report, indent=2))
+    write_json(args.output_dir / "train_profile.json", report)
     print(markdown(rows))
     if "sdp_over_dp_model_time" in report:
         ratio = report["sdp_over_dp_model_time"]
