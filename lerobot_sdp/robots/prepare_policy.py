@@ -1,5 +1,7 @@
-"""`python -m lerobot_sdp.robots.prepare_policy POLICY_DIR...`: make SDP checkpoints saved before
-`sdp_split_state` existed run on a robot (adds the step to their saved preprocessor)."""
+"""`python -m lerobot_sdp.robots.prepare_policy POLICY_DIR...`: let a keypoints checkpoint whose saved
+preprocessor lacks SDP's `sdp_split_state` step run on a robot that sends one joined `observation.state`
+(`pusht_sim`): LeRobot Diffusion Policy checkpoints trained on keypoints (the comparisons in
+docs/deployment.md), and SDP checkpoints saved before the step existed. Adds the step in place."""
 
 import argparse
 from pathlib import Path
