@@ -2,20 +2,20 @@
 (site-packages already has one, from draccus)."""
 
 import logging
-import os
 from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-
 
 def real_pusht_zarr() -> Path | None:
-    """The real Push-T demonstrations: $SDP_PUSHT_ZARR, then ../shared/data/pusht/..."""
-    env = os.environ.get("SDP_PUSHT_ZARR")
-    candidates = [Path(env)] if env else []
-    candidates.append(REPO.parent / "shared" / "data" / "pusht" / "pusht_cchi_v7_replay.zarr")
-    return next((p for p in candidates if p.exists()), None)
+    """The real Push-T demonstrations, found as the main job finds them: $SDP_PUSHT_ZARR, then
+    ../shared/data/pusht/ beside the repository; None when neither exists."""
+    from lerobot_sdp.pusht.data import NoPushTDataError, find_zarr
+
+    try:
+        return find_zarr(None)
+    except NoPushTDataError:  # $SDP_PUSHT_ZARR names a path that does not exist
+        return None
 
 
 @pytest.fixture
