@@ -32,6 +32,18 @@ def path(name: str) -> Path:
     return found
 
 
+def config_argument(value: str) -> Path:
+    """An argparse `type` for `--config_path`: a JSON file, or the name of a shipped config. Given as
+    the default by name, it resolves only when the command runs."""
+    given = Path(value)
+    if given.suffix == ".json" or given.exists():
+        return given
+    try:
+        return path(value)
+    except FileNotFoundError as e:
+        raise argparse.ArgumentTypeError(f"{e} Pass a config file or one of those names.") from None
+
+
 def main(argv: list[str] | None = None) -> None:
     raw = argparse.RawDescriptionHelpFormatter
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=raw)

@@ -41,3 +41,13 @@ def test_the_wheel_lists_every_package_and_ships_the_configs():
     assert packages | {"lerobot_sdp.configs"} == set(setuptools["packages"])
     assert setuptools["package-dir"] == {"lerobot_sdp.configs": "configs"}
     assert setuptools["package-data"]["lerobot_sdp.configs"] == ["*.json"]
+
+
+def test_config_path_takes_a_file_or_a_shipped_name(tmp_path):
+    import argparse
+
+    mine = tmp_path / "mine.json"
+    assert shipped_configs.config_argument(str(mine)) == mine  # a file, even one not written yet
+    assert shipped_configs.config_argument("pusht_state_paper") == shipped_configs.path("pusht_state_paper")
+    with pytest.raises(argparse.ArgumentTypeError, match="Pass a config file or one of those names"):
+        shipped_configs.config_argument("pusht_nope")

@@ -46,7 +46,12 @@ VARIANTS = {
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config_path", type=Path, default=shipped_configs.path("pusht_state_cpu"))
+    p.add_argument(
+        "--config_path",
+        type=shipped_configs.config_argument,
+        default="pusht_state_cpu",
+        help="a config file, or the name of a shipped one (python -m lerobot_sdp.shipped_configs)",
+    )
     p.add_argument("--dataset_root", type=Path, required=True)
     p.add_argument("--repo_id", default="local/pusht_keypoints")
     p.add_argument("--variants", nargs="+", default=["baseline", "tuned"], choices=list(VARIANTS))

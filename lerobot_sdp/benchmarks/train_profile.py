@@ -27,7 +27,12 @@ PHASES = ("data", "preprocess", "forward", "backward", "optimizer", "ema")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config_path", type=Path, default=shipped_configs.path("pusht_state_cpu"))
+    p.add_argument(
+        "--config_path",
+        type=shipped_configs.config_argument,
+        default="pusht_state_cpu",
+        help="a config file, or the name of a shipped one (python -m lerobot_sdp.shipped_configs)",
+    )
     p.add_argument(
         "--dataset_root", type=Path, required=True, help="local LeRobotDataset (e.g. the converted zarr)"
     )

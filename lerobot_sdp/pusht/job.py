@@ -38,7 +38,12 @@ STAGES = ("data", "train", "eval", "measure")
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--output_dir", type=Path, default=Path("outputs/pusht_main"))
-    p.add_argument("--config_path", type=Path, default=shipped_configs.path("pusht_state_cpu"))
+    p.add_argument(
+        "--config_path",
+        type=shipped_configs.config_argument,
+        default="pusht_state_cpu",
+        help="a config file, or the name of a shipped one (python -m lerobot_sdp.shipped_configs)",
+    )
     p.add_argument(
         "--zarr",
         type=Path,
