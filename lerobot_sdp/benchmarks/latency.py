@@ -44,8 +44,8 @@ from .latency_report import (
     ratios,
     settings,
     summarise,
-    write_json,
 )
+from .report import write_json
 
 logger = logging.getLogger(__name__)
 
@@ -184,8 +184,8 @@ def run(args: argparse.Namespace) -> dict:
                     f"{case.device} b={case.batch_size} {case.sampler} h={case.n_chunks}"
                 )
                 report["results"].append(run_case(args, case, progress))
-                write_json(report, args.output_dir)  # keep what is done if a long run is interrupted
-    write_json(report, args.output_dir)
+                write_json(args.output_dir / JSON_NAME, report)  # an interrupted run keeps what is done
+    write_json(args.output_dir / JSON_NAME, report)
     if measured_results(report["results"]):
         plot_h_sweep(report["results"], args.output_dir / PLOT_NAME)
         print(markdown_table(report["results"]))

@@ -12,7 +12,6 @@ from lerobot.policies.pretrained import PreTrainedPolicy
 
 from .latency_measure import Case, Cycle, expected_denoiser_calls
 from .report import table
-from .report import write_json as write_report
 
 TARGET_RATIO = 1.1  # the target: SDP / DP time per chunk <= 1.1 / h
 
@@ -147,8 +146,3 @@ def markdown_table(results: list[dict]) -> str:
             ]
         )
     return "\n".join(table(header, rows))
-
-
-def write_json(report: dict, output_dir: Path) -> None:
-    # default=str: paths and samplers are written as their command-line spelling.
-    write_report(output_dir / JSON_NAME, report)
