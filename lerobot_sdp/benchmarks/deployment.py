@@ -9,7 +9,10 @@ the real CLIs: `lerobot-rollout` for `sync` and `rtc` (`--inference.queue_thresh
 and for `async` the plugin's `lerobot-sdp-policy-server` with LeRobot's `robot_client`. One episode
 per run (`pusht_sim` runs one episode per connection, so every episode starts with a fresh policy),
 episode i seeded `--seed` + i, the same seeds for every row; a run is stopped with SIGINT, as Ctrl-C
-does, once its episode is over. Per row: avg_max_reward and success with standard errors, missed
+does, once its episode is over. `--parallel K` runs K episodes at once (K robots, each with its own
+`lerobot-rollout` or `robot_client`; for async, one server serving all K), started together and
+awaited together: more episodes in the same wall time, at the price of K control loops sharing the
+CPU, which the missed-tick column shows. Per row: avg_max_reward and success with standard errors, missed
 control ticks per episode, how far the commanded target jumped between consecutive actions.
 
 A policy LeRobot cannot run under an engine (RTC needs `supports_rtc()`) gets a row that says so; a
@@ -48,6 +51,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_policy_argument(p)
     p.add_argument("--engines", nargs="+", default=list(ENGINES), choices=ENGINES)
     p.add_argument("--episodes", type=int, default=20, help="episodes per policy and engine")
+    p.add_argument(
+        "--parallel", type=int, default=1, help="episodes run at once, each on its own robot and process"
+    )
     p.add_argument("--seed", type=int, default=EVAL_SEED, help="episode i starts from seed + i")
     p.add_argument("--episode_length", type=int, default=300, help="ticks per episode (Push-T: 300)")
     p.add_argument(
@@ -170,24 +176,55 @@ def until_episode_over(run: "Logged", stats: Path, timeout: float) -> None:
         raise RuntimeError(f"the episode did not end: the run {why}")
 
 
-def one_episode(path: Path, config: PreTrainedConfig, engine: str, i: int, args, server_port: int | None):
-    """Run episode i of one row; returns the robot's stats."""
+def start_episode(path: Path, config: PreTrainedConfig, engine: str, i: int, args) -> tuple:
+    """Start episode i of one row: (its run, its robot's stats file, its log)."""
     name = f"{args.row_name}_{engine}_{i:03d}"
     stats = args.output_dir / "stats" / f"{name}.json"
     stats.unlink(missing_ok=True)
     robot = robot_args(stats, args.output_dir / "calibration", args.seed + i, args.episode_length)
-    episode_s = args.episode_length / FPS
     log = args.output_dir / "logs" / f"{name}.log"
     if engine == "async":
-        run = Logged(client_cmd(path, config, robot, server_port), log, CLIENT_READY)
-    else:
-        threshold = args.rtc_threshold if engine == "rtc" else None
-        run = Logged(rollout_cmd(path, robot, int(episode_s) + 60, threshold), log)
+        return Logged(client_cmd(path, config, robot, args.port), log, CLIENT_READY), stats, log
+    threshold = args.rtc_threshold if engine == "rtc" else None
+    return Logged(rollout_cmd(path, robot, int(args.episode_length / FPS) + 60, threshold), log), stats, log
+
+
+def finish_episode(run: "Logged", stats: Path, log: Path, args) -> dict:
+    """Wait for a started episode to end; returns the robot's stats."""
     try:
-        until_episode_over(run, stats, timeout=episode_s + 180)  # model loading included
+        until_episode_over(run, stats, timeout=args.episode_length / FPS + 180)  # model loading included
     except RuntimeError as e:
         raise RuntimeError(f"{e}; see {log}") from None
     return json.loads(stats.read_text())
+
+
+def run_episodes(path: Path, config: PreTrainedConfig, engine: str, args) -> list[dict]:
+    """Every episode of one row, `args.parallel` at a time; the stats of those that finished before
+    the first failure (whose error, with what finished, is in the RuntimeError raised)."""
+    episodes: list[dict] = []
+    for first in range(0, args.episodes, args.parallel):
+        wave = [
+            start_episode(path, config, engine, i, args)
+            for i in range(first, min(first + args.parallel, args.episodes))
+        ]
+        errors = []
+        for run, stats, log in wave:
+            try:
+                episodes.append(finish_episode(run, stats, log, args))
+            except RuntimeError as e:
+                errors.append(str(e))
+        print(f"[deployment] {args.row_name} / {engine}: episode {len(episodes)}/{args.episodes}", flush=True)
+        if errors:
+            raise EpisodesError(episodes, f"episode {len(episodes) + 1}: {errors[0]}")
+    return episodes
+
+
+class EpisodesError(RuntimeError):
+    """A row's run that stopped: the episodes that finished, and why it stopped."""
+
+    def __init__(self, episodes: list[dict], message: str):
+        super().__init__(message)
+        self.episodes = episodes
 
 
 def start_server(args, log: Path) -> "Logged":
@@ -197,6 +234,7 @@ def start_server(args, log: Path) -> "Logged":
         f"--port={args.port}",
         f"--fps={FPS}",
         "--session_timeout_s=5",  # one client per episode: the last one's session frees its slot soon
+        f"--max_clients={2 * args.parallel}",  # a wave's clients while the last wave's sessions time out
     ]
     server = Logged(server_cmd, log)
     wait_for_port(args.port, server.proc)
@@ -221,6 +259,7 @@ def measure(name: str, path: Path, engine: str, args) -> dict:
         "path": str(path),
         "engine": engine,
         "seeds": [args.seed, args.seed + args.episodes - 1],
+        "parallel": args.parallel,
     }
     config = PreTrainedConfig.from_pretrained(path)
     if engine == "rtc" and config.type != "sdp":
@@ -229,18 +268,16 @@ def measure(name: str, path: Path, engine: str, args) -> dict:
         }
     (args.output_dir / "logs").mkdir(parents=True, exist_ok=True)
     args.row_name = name
-    started, episodes = time.monotonic(), []
+    started = time.monotonic()
     server = (
         start_server(args, args.output_dir / "logs" / f"{name}_async_server.log")
         if engine == "async"
         else None
     )
     try:
-        for i in range(args.episodes):
-            episodes.append(one_episode(path, config, engine, i, args, args.port))
-            print(f"[deployment] {name} / {engine}: episode {i + 1}/{args.episodes}", flush=True)
-    except RuntimeError as e:
-        row["error"] = f"episode {len(episodes)}: {e}"
+        episodes = run_episodes(path, config, engine, args)
+    except EpisodesError as e:
+        episodes, row["error"] = e.episodes, str(e)
     finally:
         if server is not None:
             server.stop(signal.SIGTERM)
@@ -281,6 +318,10 @@ def markdown(rows: list[dict]) -> str:
 
 
 def run(args: argparse.Namespace) -> list[dict]:
+    if args.parallel < 1 or args.episodes < 1:
+        raise SystemExit(
+            f"--parallel and --episodes must be at least 1, got {args.parallel} and {args.episodes}."
+        )
     policies = parse_policies(args.policy)
     problems = [p for p in map(robot_ready_problem, policies.values()) if p]
     if problems:

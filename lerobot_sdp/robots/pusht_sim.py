@@ -205,8 +205,10 @@ class PushTSim(Robot):
         self._write_stats()
 
     def stats(self) -> dict[str, Any]:
-        """Actions sent, finished episodes, and the episode under way (reward and success so far)."""
+        """The episode's seed, actions sent, finished episodes, and the episode under way (reward and
+        success so far)."""
         return {
+            "seed": self.config.seed,
             "actions_sent": self.actions_sent,
             "actions_after_end": self.actions_after_end,
             "early_actions": self.early_actions,
