@@ -3,11 +3,13 @@ primers of Sec. "Initializing the action buffer"; docs/algorithm.md, section 7).
 
 The buffer holds one partially denoised action sequence per environment, normalised, shape
 (B, horizon, A). At the start of every call its slots sit at ``geometry.start_levels`` (chunk i at
-(i+1)*s steps remaining). ``advance`` runs exactly s = N/h denoiser calls, which makes chunk 0
-clean, pops it, and shifts: the old chunks move down one place (each now one band cleaner, which is
-exactly the start pattern), a chunk of N(0, I) is appended at level N, and the past-action slots,
-now holding actions already executed, are re-noised to chunk 0's level, because training corrupts
-past slots at chunk 0's level too (the authors' code left them clean but labelled noisy).
+(i+1)*s steps remaining). One streaming call (``stream_step``: the maths as a function here, the
+buffer's method of that name keeping the state, the model's binding the observation) runs exactly
+s = N/h denoiser calls, which makes chunk 0 clean, pops it, and shifts: the old chunks move down one
+place (each now one band cleaner, which is exactly the start pattern), a chunk of N(0, I) is
+appended at level N, and the past-action slots, now holding actions already executed, are re-noised
+to chunk 0's level, because training corrupts past slots at chunk 0's level too (the authors' code
+left them clean but labelled noisy).
 
 A call made while d actions of the last chunk are still to run (inference delay, `ChunkGeometry`'s
 committed slots) denoises a *window*: those d actions inserted clean after the past slots, the past
@@ -16,6 +18,7 @@ ticks after the observation, exactly where the committed actions end; the shift 
 without its first d slots, so the next buffer has the same layout either way.
 """
 
+import functools
 import threading
 from collections.abc import Callable
 from typing import NamedTuple
@@ -113,6 +116,11 @@ def stream_step(
     return sample[:, geometry.executed], shift(geometry, sample, plan[0], noise.shift)
 
 
+def bind(schedule: PerSlotSchedule, geometry: ChunkGeometry, denoiser: Denoiser) -> StreamStep:
+    """`stream_step` over a plain denoiser of (sample, timesteps (B, T)), as the buffer calls it."""
+    return functools.partial(stream_step, schedule, geometry, denoiser)
+
+
 class StreamingBuffer:
     """Persistent buffer of future actions at increasing noise levels. Plain object state: it is
     never part of the model's state dict and is dropped by ``clear`` (episode end, batch change)."""
@@ -181,25 +189,14 @@ class StreamingBuffer:
         chunks = self.sample[:, g.n_past : g.horizon - d]
         return torch.cat([past, self.last_chunk[:, tb - d :], chunks], dim=1)
 
-    def advance(
-        self, denoiser: Denoiser, generator: torch.Generator | None = None, committed: int = 0
+    def stream_step(
+        self, step: StreamStep, generator: torch.Generator | None = None, committed: int = 0
     ) -> Tensor:
-        """Run s calls of a denoiser of (sample, timesteps (B, T)), pop the now clean chunk (B, Tb, A)
-        and roll the buffer forward (the plain form of `run`, which the policy calls with its
-        compiled or cached step), ``committed`` actions of the last chunk still to run first. Every
-        random draw (DDPM step noise, re-noised past slots, the new tail) uses ``generator``."""
-
-        def step(
-            sample: Tensor, plan: list[StepCoefficients], noise: StreamNoise, committed: int
-        ) -> tuple[Tensor, Tensor]:
-            return stream_step(self.schedule, self.geometry, denoiser, sample, plan, noise, committed)
-
-        return self.run(step, generator, committed)
-
-    def run(self, step: StreamStep, generator: torch.Generator | None = None, committed: int = 0) -> Tensor:
-        """One streaming call through ``step`` (e.g. the policy's cached or compiled one) on the
-        ``window`` of ``committed`` slots: draw its noise, run it, keep the shifted buffer. If ``step``
-        raises, the buffer is left as it was; if ``clear`` ran meanwhile, it stays cleared."""
+        """One streaming call: draw its noise (every draw from ``generator``), run ``step`` on the
+        ``window`` of ``committed`` slots, keep the shifted buffer, return the clean chunk (B, Tb, A).
+        ``step`` is `stream_step` with its schedule, geometry and denoiser bound (`bind`), or the
+        model's conditioned, cached or compiled form of it. If ``step`` raises, the buffer is left as
+        it was; if ``clear`` ran meanwhile, it stays cleared."""
         with self._lock:
             if self.sample is None:
                 raise RuntimeError("The streaming buffer is empty: call prime() after reset().")

@@ -68,8 +68,7 @@ class ChunkGeometry:
     def horizon(self) -> int:
         """Past slots + room for max_delay committed slots + h chunks, rounded up to a multiple of the
         U-Net's downsampling factor."""
-        unpadded = self.n_past + self.max_delay + self.n_future
-        return -(-unpadded // self.downsampling) * self.downsampling
+        return round_up(self.n_past + self.max_delay + self.n_future, self.downsampling)
 
     @property
     def n_pad(self) -> int:
@@ -133,3 +132,8 @@ class ChunkGeometry:
             f"{self.chunk_len} + {self.n_pad - self.max_delay} padding), "
             f"{self.steps_per_call} denoiser calls per chunk"
         )
+
+
+def round_up(length: int, multiple: int) -> int:
+    """The smallest multiple of ``multiple`` that is at least ``length`` (a U-Net's sequence length)."""
+    return -(-length // multiple) * multiple

@@ -63,7 +63,7 @@ class SDPModel(DiffusionModel):
     def __init__(self, config: SDPConfig):
         super().__init__(config)
         # DP compiles the U-Net module in place under `compile_model`, which renames every weight
-        # (`unet._orig_mod.`); SDP compiles its whole streaming step instead (`streaming_step_fn`),
+        # (`unet._orig_mod.`); SDP compiles its whole streaming step instead (`stream_step_for`),
         # so checkpoints load the same with and without compilation.
         self.unet = getattr(self.unet, "_orig_mod", self.unet)
         self.geometry = config.geometry
@@ -128,9 +128,10 @@ class SDPModel(DiffusionModel):
         )
         return chunk, next_sample, finite
 
-    def streaming_step_fn(self, device: torch.device, compiled: bool):
-        """`stream_step`, or compiled as one graph with no breaks. On CUDA, "reduce-overhead" captures
-        the call as a CUDA graph; elsewhere that mode falls back to "default"."""
+    def stream_step_for(self, device: torch.device, compiled: bool):
+        """`stream_step` as it runs on ``device``: plain, or compiled as one graph with no breaks. On
+        CUDA, "reduce-overhead" captures the call as a CUDA graph; elsewhere that mode falls back to
+        "default"."""
         if not compiled:
             return self.stream_step
         mode = self.compile_mode(device)
@@ -359,7 +360,7 @@ class SDPPolicy(PreTrainedPolicy):
             history = {k: torch.stack(list(q), dim=1) for k, q in self._queues.items() if k != ACTION}
         else:
             history = offline_history(self.config, batch)
-        return self._stream(history, generator, compiled, committed)
+        return self._stream_step(history, generator, compiled, committed)
 
     @torch.compiler.disable
     def _rtc_chunk(
@@ -377,10 +378,10 @@ class SDPPolicy(PreTrainedPolicy):
         rest = rest_of_last_chunk(self.config, left_over) if left_over is not None else None
         # the rest is the end of the buffer's last chunk unless the stream restarted since
         committed = len(rest) if rest is not None and self._buffer.last_chunk is not None else 0
-        chunk = self._stream(history, generator, compiled, committed if self.config.max_delay else 0)
+        chunk = self._stream_step(history, generator, compiled, committed if self.config.max_delay else 0)
         return rest_then_chunk(rest, chunk)
 
-    def _stream(
+    def _stream_step(
         self,
         history: dict[str, Tensor],
         generator: torch.Generator | None,
@@ -396,18 +397,18 @@ class SDPPolicy(PreTrainedPolicy):
         fresh = self._buffer.sample is None
         if fresh:
             self._buffer.prime(model.primer(history, self.state_to_action, generator), generator)
-        run = model.streaming_step_fn(history[OBS_STATE].device, compiled)
+        model_step = model.stream_step_for(history[OBS_STATE].device, compiled)
 
         def step(
             window: Tensor, plan: list[StepCoefficients], noise: StreamNoise, committed: int
         ) -> tuple[Tensor, Tensor]:
             model.cache_step_embeddings(plan)
-            chunk, next_sample, finite = run(history, window, plan, noise, committed)
+            chunk, next_sample, finite = model_step(history, window, plan, noise, committed)
             refuse_non_finite(history, finite)  # the one host read, after the chunk is computed
             return chunk, next_sample
 
         try:
-            return self._buffer.run(step, generator, committed)
+            return self._buffer.stream_step(step, generator, committed)
         except ValueError:
             if fresh:  # never keep a stream primed from a refused observation
                 self._buffer.clear()

@@ -113,3 +113,10 @@ def make_tiny_pusht_dataset(
         ds.save_episode()
     ds.finalize()
     return ds
+
+
+def stream_step_with(buffer, denoiser, generator=None, committed: int = 0):
+    """One `StreamingBuffer.stream_step` with a plain denoiser of (sample, timesteps)."""
+    from lerobot_sdp.buffer import bind
+
+    return buffer.stream_step(bind(buffer.schedule, buffer.geometry, denoiser), generator, committed)

@@ -256,3 +256,22 @@ def test_checkpoint_steps_lists_multiples_only(tmp_path):
     for name in ("000500", "001000", "001500", "002000", "last"):
         (tmp_path / "checkpoints" / name).mkdir(parents=True)
     assert checkpoint_steps(tmp_path, 1000) == [1000, 2000]
+
+
+def test_paper_budget_is_the_shipped_paper_config(tmp_path, monkeypatch):
+    from lerobot_sdp import shipped_configs
+    from lerobot_sdp.benchmarks import quality
+
+    paper = quality.paper_budget()  # the authors' settings (docs/algorithm.md, section 9)
+    assert (paper.steps, paper.batch_size, paper.down_dims, paper.embed_dim) == (
+        100_000,
+        256,
+        (256, 512, 1024),
+        256,
+    )
+    assert (paper.lr, paper.num_inference_steps, paper.scheduler) == (1e-4, 100, "DDPM")
+    edited = json.loads(shipped_configs.path("pusht_state_paper").read_text())
+    edited["steps"], edited["policy"]["down_dims"] = 5_000, [8, 16]
+    (tmp_path / "pusht_state_paper.json").write_text(json.dumps(edited))
+    monkeypatch.setattr(shipped_configs, "root", lambda: tmp_path)
+    assert quality.paper_budget().steps == 5_000 and quality.paper_budget().down_dims == (8, 16)

@@ -9,7 +9,7 @@ smooth random walk), aligned with the buffer's position in it. With a perfect x0
 reverse process keeps every slot's marginal exact, so:
 
 - after ``prime`` every slot is q(x_k | primer) at its start level;
-- after ``advance`` the executed chunk equals the truth; the kept chunks moved by exactly one chunk
+- after ``stream_step`` the executed chunk equals the truth; the kept chunks moved by exactly one chunk
   (DDIM: every kept slot keeps its implied noise, exactly; DDPM: the kept slot follows the exact
   posterior q(x_k' | x_k, x0)); the past slots are the executed truth noised to chunk 0's level;
   the appended slots are fresh N(0, I).
@@ -22,6 +22,7 @@ import math
 import pytest
 import torch
 from diffusers import DDIMScheduler, DDPMScheduler
+from sdp_test_utils import stream_step_with
 
 from lerobot_sdp.buffer import StreamingBuffer
 from lerobot_sdp.geometry import ChunkGeometry
@@ -165,11 +166,11 @@ def test_prime_is_the_forward_process_at_each_slots_start_level(name, kind):
     assert_gaussian(buffer.sample, abar.sqrt() * primer[0].double(), 1 - abar, f"{name} {kind} prime")
 
 
-# --- advance ---------------------------------------------------------------------------------------
+# --- stream_step ------------------------------------------------------------------------------------
 
 
 def check_advance(ref, oracle, kind, before, chunk, after, residuals):
-    """One ``advance`` against the reference: exact where the process is deterministic, else the
+    """One ``stream_step`` against the reference: exact where the process is deterministic, else the
     standardised residuals of each slot group are collected for ``assert_standard_normal``."""
     n_past, tb, level = ref.n_past, ref.chunk_len, ref.level
     x0_old, x0_new = oracle.x0(oracle.chunk), oracle.x0(oracle.chunk + 1)  # truth aligned before / after
@@ -221,7 +222,7 @@ def test_oracle_stream_contents_over_many_chunks(name, kind, prediction_type):
     for c in range(n_stream):
         before = buffer.sample.clone()
         oracle.timesteps.clear()
-        chunk = buffer.advance(oracle, g)
+        chunk = stream_step_with(buffer, oracle, g)
         assert len(oracle.timesteps) == ref.s, f"chunk {c}: {len(oracle.timesteps)} denoiser calls"
         for j, (got, want) in enumerate(zip(oracle.timesteps, expected_t, strict=True)):
             assert torch.equal(got, want), f"chunk {c}, call {j}: timesteps {got[0].tolist()}"
@@ -248,7 +249,7 @@ def test_advance_contents_per_slot_with_a_large_batch(kind):
     buffer.prime(oracle.x0(), g)
     abar = ref.abar(ref.level)
     for _ in range(3):
-        chunk = buffer.advance(oracle, g)
+        chunk = stream_step_with(buffer, oracle, g)
         torch.testing.assert_close(chunk, oracle.x0()[:, ref.executed], atol=2e-4, rtol=0)
         oracle.chunk += 1
         x0 = oracle.x0()[0].double()
@@ -269,7 +270,7 @@ def test_past_re_noise_and_appended_tail_are_independent_draws():
     truth = true_actions(1, 2 * tb + ref.horizon, seed=13).expand(batch, -1, -1)
     oracle = Oracle(truth, ref, "sample")
     buffer.prime(oracle.x0(), torch.Generator().manual_seed(9))
-    buffer.advance(oracle, torch.Generator().manual_seed(10))
+    stream_step_with(buffer, oracle, torch.Generator().manual_seed(10))
     oracle.chunk += 1
     a = ref.abar(ref.level[: ref.n_past])
     past = (buffer.sample[:, : ref.n_past].double() - a.sqrt() * oracle.x0()[:, : ref.n_past]) / (
@@ -301,7 +302,7 @@ def test_one_generator_reproduces_the_stream_and_leaves_the_global_rng_alone(kin
         buffer.prime(torch.zeros(2, ref.horizon, A), g)
         out = [buffer.sample.clone()]
         for _ in range(3):
-            out.append(buffer.advance(lambda x, t: 0.1 * x, g))
+            out.append(stream_step_with(buffer, lambda x, t: 0.1 * x, g))
             out.append(buffer.sample.clone())
         assert torch.equal(torch.get_rng_state(), state), "the global RNG was used"
         return out

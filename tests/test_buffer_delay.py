@@ -11,6 +11,7 @@ a buffer shifted by the wrong amount, shows as a chunk from the wrong time.
 import pytest
 import torch
 from diffusers import DDIMScheduler, DDPMScheduler
+from sdp_test_utils import stream_step_with
 
 from lerobot_sdp.buffer import StreamingBuffer
 from lerobot_sdp.geometry import ChunkGeometry
@@ -54,7 +55,7 @@ def streamed(kind: str = "DDIM"):
     truth = random_walk()
     oracle = Oracle(truth)
     buffer.prime(torch.zeros(1, buffer.geometry.horizon, A), torch.Generator().manual_seed(1))
-    first = buffer.advance(oracle, torch.Generator().manual_seed(2))
+    first = stream_step_with(buffer, oracle, torch.Generator().manual_seed(2))
     torch.testing.assert_close(first, truth[:, N_PAST : N_PAST + TB])
     return buffer, scheduler, truth, oracle, first
 
@@ -65,14 +66,14 @@ def test_the_chunk_after_the_committed_actions_is_returned_and_the_stream_goes_o
     # The call's observation is at time TB - d + N_PAST (d actions of the first chunk still to run):
     # the window's slot 0 is the action before it.
     oracle.offset, oracle.calls = TB - d, []
-    chunk = buffer.advance(oracle, committed=d)
+    chunk = stream_step_with(buffer, oracle, committed=d)
     # the chunk is the one that starts when the committed actions end: times 5..8, not 5-d..8-d
     torch.testing.assert_close(chunk, truth[:, N_PAST + TB : N_PAST + 2 * TB])
     assert len(oracle.calls) == N // H
     # the next call, without delay, continues where this chunk ends
     oracle.offset = 2 * TB
     torch.testing.assert_close(
-        buffer.advance(oracle, torch.Generator().manual_seed(4)),
+        stream_step_with(buffer, oracle, torch.Generator().manual_seed(4)),
         truth[:, N_PAST + 2 * TB : N_PAST + 3 * TB],
     )
 
@@ -83,7 +84,7 @@ def test_committed_slots_are_the_last_chunks_end_clean_through_every_call(kind, 
     buffer, _, _, oracle, first = streamed(kind)
     before = buffer.sample.clone()
     oracle.offset, oracle.calls = TB - d, []
-    buffer.advance(oracle, committed=d)
+    stream_step_with(buffer, oracle, committed=d)
     committed = slice(N_PAST, N_PAST + d)
     for sample, timesteps in oracle.calls:
         assert torch.equal(sample[:, committed], first[:, TB - d :])  # unchanged by every step
@@ -100,7 +101,7 @@ def test_past_slots_hold_the_action_before_the_committed_ones_with_the_same_nois
     buffer, scheduler, _, oracle, first = streamed()
     before = buffer.sample.clone()
     oracle.offset, oracle.calls = TB - d, []
-    buffer.advance(oracle, committed=d)
+    stream_step_with(buffer, oracle, committed=d)
     window = oracle.calls[0][0]
     # chunk 0's start level k = N/h: diffusers' set_timesteps(N) table, ascending
     scheduler.set_timesteps(N)
@@ -117,19 +118,19 @@ def test_committed_zero_is_the_plain_call():
     b, *_ = streamed()
     oracle_a, oracle_b = Oracle(random_walk()), Oracle(random_walk())
     oracle_a.offset = oracle_b.offset = TB
-    plain = a.advance(oracle_a, torch.Generator().manual_seed(5))
-    zero = b.advance(oracle_b, torch.Generator().manual_seed(5), committed=0)
+    plain = stream_step_with(a, oracle_a, torch.Generator().manual_seed(5))
+    zero = stream_step_with(b, oracle_b, torch.Generator().manual_seed(5), committed=0)
     assert torch.equal(plain, zero) and torch.equal(a.sample, b.sample)
 
 
 def test_committed_beyond_max_delay_or_before_any_chunk_is_refused():
     buffer, *_ = streamed()
     with pytest.raises(ValueError, match="max_delay=3"):
-        buffer.advance(Oracle(random_walk()), committed=MAX_DELAY + 1)
+        stream_step_with(buffer, Oracle(random_walk()), committed=MAX_DELAY + 1)
     fresh, _ = make_buffer()
     fresh.prime(torch.zeros(1, fresh.geometry.horizon, A))
     with pytest.raises(ValueError, match="first chunk starts right after its observation"):
-        fresh.advance(Oracle(random_walk()), committed=1)
+        stream_step_with(fresh, Oracle(random_walk()), committed=1)
 
 
 @pytest.mark.parametrize("d", [0, 2])
@@ -141,5 +142,5 @@ def test_a_clear_during_a_call_is_not_undone_when_the_call_ends(d):
         buffer.clear()  # e.g. policy.reset() from the control thread while inference runs
         return oracle(sample, timesteps)
 
-    buffer.advance(clearing, committed=d)
+    stream_step_with(buffer, clearing, committed=d)
     assert buffer.sample is None and buffer.last_chunk is None

@@ -13,6 +13,7 @@ from ..chunk_cost import stream_cost
 from ..lerobot_cli import evaluate
 from .curves import episode_stats
 from .latency_measure import Sampler
+from .report import reward_success_plot, save_figure
 
 SAMPLERS = {
     "diffusion": ("DDPM100", "DDIM16", "DDIM10", "DDIM5", "DDIM2"),
@@ -40,40 +41,11 @@ def sweep(policy_type: str, model_dir: Path, here: Path, eval_args: list[str]) -
 
 
 def plot(sweeps: dict[str, list[dict]], path: Path, title: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(2, 2, figsize=(11, 7.5), sharey="row")
-    for name, points in sweeps.items():
-        for col, x_key in enumerate(("denoiser_calls_per_chunk", "latency_per_chunk_ms")):
-            xs = [p[x_key] for p in points]
-            for row, (y_key, se_key) in enumerate(
-                (("avg_max_reward", "avg_max_reward_se"), ("pc_success", "pc_success_se"))
-            ):
-                ax = axes[row, col]
-                ax.errorbar(
-                    xs,
-                    [p[y_key] for p in points],
-                    [p.get(se_key, 0.0) for p in points],
-                    marker="o",
-                    capsize=3,
-                    label=name,
-                )
-                for p, x in zip(points, xs, strict=True):
-                    ax.annotate(
-                        p["sampler"], (x, p[y_key]), fontsize=7, xytext=(3, 3), textcoords="offset points"
-                    )
-    for ax in axes.flat:
-        ax.set_xscale("log")
-        ax.grid(alpha=0.3)
-    axes[1, 0].set_xlabel("denoiser calls per chunk")
-    axes[1, 1].set_xlabel("latency per chunk, batch 1, CPU (ms)")
-    axes[0, 0].set_ylabel("avg_max_reward")
-    axes[1, 0].set_ylabel("pc_success (%)")
-    axes[0, 0].legend(fontsize=8)
-    fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    """avg_max_reward and pc_success against denoiser calls and latency per chunk, one line per policy,
+    each point named by its sampler."""
+    x_axes = [
+        ("denoiser_calls_per_chunk", "denoiser calls per chunk", 1),
+        ("latency_per_chunk_ms", "latency per chunk, batch 1, CPU (ms)", 1),
+    ]
+    fig, _ = reward_success_plot(sweeps, x_axes, title, annotate="sampler", log_x=True)
+    save_figure(fig, path)

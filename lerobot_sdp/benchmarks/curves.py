@@ -16,6 +16,7 @@ from datetime import datetime
 from pathlib import Path
 
 from .episodes import figures
+from .report import reward_success_plot, save_figure
 
 STEP_LOG = re.compile(r"(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d) .*?\bstep:(\d+(?:\.\d+)?[KM]?) ")
 # lerobot-train's progress bar, printed on the same line just before a step log: "2000/18000 [07:45<...]"
@@ -94,35 +95,12 @@ def episode_stats(eval_dir: Path) -> dict:
 def plot(rows: dict[str, dict], path: Path, title: str) -> None:
     """avg_max_reward and pc_success against training steps and training wall time, one line per
     policy, the evaluation latency per chunk in the legend."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(2, 2, figsize=(11, 7.5), sharey="row")
-    for name, row in rows.items():
-        curve = row.get("curve") or []
-        if not curve:
-            continue
-        calls, ms = row["denoiser_calls_per_chunk"], row["latency_per_chunk_ms"]
-        label = f"{name} ({calls:g} calls, {ms:.0f} ms / chunk at batch 1)"
-        for col, x_key in enumerate(("step", "train_wall_s")):
-            xs = [p[x_key] / (1 if x_key == "step" else 60) for p in curve]
-            for r, (y_key, se_key) in enumerate(
-                (("avg_max_reward", "avg_max_reward_se"), ("pc_success", "pc_success_se"))
-            ):
-                ys = [p[y_key] for p in curve]
-                errs = [p.get(se_key, 0.0) for p in curve]
-                axes[r, col].errorbar(xs, ys, yerr=errs, marker="o", capsize=3, label=label)
-    for col, xlabel in enumerate(("training steps", "training wall time (min)")):
-        axes[1, col].set_xlabel(xlabel)
-    axes[0, 0].set_ylabel("avg_max_reward")
-    axes[1, 0].set_ylabel("pc_success (%)")
-    for ax in axes.flat:
-        ax.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=8, loc="lower right")
-    fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    series = {
+        f"{name} ({row['denoiser_calls_per_chunk']:g} calls, {row['latency_per_chunk_ms']:.0f} ms / chunk "
+        "at batch 1)": row["curve"]
+        for name, row in rows.items()
+        if row.get("curve")
+    }
+    x_axes = [("step", "training steps", 1), ("train_wall_s", "training wall time (min)", 60)]
+    fig, _ = reward_success_plot(series, x_axes, title)
+    save_figure(fig, path)

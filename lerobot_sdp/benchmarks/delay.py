@@ -34,7 +34,7 @@ from ..chunk_cost import load_policy, stream_cost
 from ..pusht.evaluation import EVAL_SEED, OBS_TYPE
 from .episodes import figures
 from .policy_args import add_policy_argument, parse_policies
-from .report import table, write_json
+from .report import reward_success_plot, save_figure, table, write_json
 from .virtual_clock import MODES, DelayedControl, mode_problem
 
 FPS = 10  # Push-T's control rate
@@ -236,47 +236,23 @@ def markdown(results: dict) -> str:
 
 def plot(results: dict, path: Path) -> None:
     """avg_max_reward and success against d, one line per row; dashed: each policy's measured delay."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), sharex=True)
-    for row, by_delay in table_rows(results).items():
-        done = sorted((d, c) for d, c in by_delay.items() if "skipped" not in c)
-        if not done:
-            continue
-        xs = [d for d, _ in done]
-        for ax, key in zip(axes, ("avg_max_reward", "pc_success"), strict=True):
-            ax.errorbar(
-                xs,
-                [c[key] for _, c in done],
-                yerr=[c[f"{key}_se"] for _, c in done],
-                marker="o",
-                capsize=3,
-                label=row,
-            )
+    series = {
+        row: [c for _, c in sorted(by_delay.items()) if "skipped" not in c]
+        for row, by_delay in table_rows(results).items()
+    }
+    x_axes = [("delay", "inference delay d (control ticks at 10 Hz)", 1)]
+    title = "Push-T under inference delay (virtual clock); dashed: each policy's delay on this CPU"
+    fig, axes = reward_success_plot({row: points for row, points in series.items() if points}, x_axes, title)
     for i, (name, lat) in enumerate(results["latency"].items()):
-        for ax in axes:
-            ax.axvline(lat["delay_ticks"] + 0.04 * i, ls="--", lw=1, color=f"C{i + 5}")
-        axes[0].text(
-            lat["delay_ticks"] + 0.04 * i,
+        x = lat["delay_ticks"] + 0.04 * i
+        for ax in axes[:, 0]:
+            ax.axvline(x, ls="--", lw=1, color=f"C{i + 5}")
+        axes[0, 0].text(
+            x,
             0.02 + 0.06 * i,
             f" {name}: {lat['latency_per_chunk_ms']:.0f} ms",
-            transform=axes[0].get_xaxis_transform(),
+            transform=axes[0, 0].get_xaxis_transform(),
             fontsize=8,
             color=f"C{i + 5}",
         )
-    axes[0].set_ylabel("avg_max_reward")
-    axes[1].set_ylabel("success (%)")
-    for ax in axes:
-        ax.set_xlabel("inference delay d (control ticks at 10 Hz)")
-        ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
-    fig.suptitle(
-        "Push-T under inference delay (virtual clock); dashed: each policy's delay on this CPU", fontsize=10
-    )
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)

@@ -11,17 +11,15 @@ its denoiser and image-encoder time: queues, buffer, sampler updates, concatenat
 """
 
 import argparse
-import copy
 import itertools
 import re
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import torch
 from lerobot.configs.types import FeatureType, PolicyFeature
-from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
 from lerobot.policies.diffusion.modeling_diffusion import DiffusionModel, DiffusionPolicy
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.random_utils import set_seed
@@ -31,6 +29,7 @@ from tqdm import tqdm
 from ..chunk_cost import CallProbe
 from ..configuration_sdp import SDPConfig
 from ..modeling_sdp import SDPPolicy
+from .matched_dp import matching_dp_config
 
 # State-based Push-T (agent position 2, T-block keypoints 16) and image Push-T (one 96 x 96 camera,
 # the agent position as state); the action is the 2-D target position.
@@ -120,20 +119,6 @@ def sdp_config(args: argparse.Namespace, case: Case) -> SDPConfig:
         input_features=OBSERVATIONS[args.obs],
         output_features=ACTION_FEATURE,
     )
-
-
-def matching_dp_config(sdp: SDPConfig) -> DiffusionConfig:
-    """LeRobot's DiffusionConfig with every field the two configs share copied from ``sdp``, and the
-    same horizon."""
-    shared = {f.name for f in fields(SDPConfig)} & {f.name for f in fields(DiffusionConfig) if f.init}
-    values = {name: copy.deepcopy(getattr(sdp, name)) for name in shared}
-    factor = 2 ** len(sdp.down_dims)
-    config = DiffusionConfig(**values, horizon=-(-sdp.horizon // factor) * factor)
-    # DiffusionConfig checks divisibility by 2**len(down_dims), but its U-Net only downsamples
-    # len(down_dims) - 1 times, which is what SDP's geometry pads to: set the exact same length
-    # after validation, so DP does not get a longer (slower) sequence than SDP.
-    config.horizon = sdp.horizon
-    return config
 
 
 def build_policies(args: argparse.Namespace, case: Case) -> tuple[SDPPolicy, DiffusionPolicy]:

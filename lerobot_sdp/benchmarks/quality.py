@@ -18,6 +18,7 @@ from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
+from .. import shipped_configs
 from ..chunk_cost import stream_cost
 from ..geometry import ChunkGeometry
 from ..lerobot_cli import evaluate, last_checkpoint, train, trained_steps
@@ -25,6 +26,7 @@ from ..pusht.data import keypoints_dataset_args
 from ..pusht.evaluation import EVAL_SEED, OBS_TYPE, pusht_eval_args
 from . import cost_sweep
 from .curves import checkpoint_steps, episode_stats, plot, step_logs, train_wall_s, wall_time_at
+from .matched_dp import matching_dp_flags
 from .report import table, with_se, write_json
 
 DP_HORIZON = 16  # LeRobot's reference Push-T Diffusion Policy (lerobot/diffusion_pusht)
@@ -50,9 +52,29 @@ BUDGETS = {
     "tiny": Budget(2, 4, (16, 32), 16, 1e-4, 0, 2, 8, "DDIM", episode_length=10, ablation_steps=2),
     # state-based keypoints Push-T on 2 CPU cores: a few hours for the comparison
     "cpu": Budget(20_000, 64, (64, 128, 256), 64, 5e-4, 500, 100, ablation_steps=3_000),
-    # the authors' hyperparameters (docs/algorithm.md, section 9), for a GPU
-    "paper": Budget(100_000, 256, (256, 512, 1024), 256, 1e-4, 500, 100, ablation_steps=20_000),
 }
+# and "paper": the authors' hyperparameters, read from the shipped config (`paper_budget`), for a GPU
+PAPER_CONFIG = "pusht_state_paper"
+
+
+def paper_budget() -> Budget:
+    """The authors' hyperparameters (docs/algorithm.md, section 9) as `configs/pusht_state_paper.json`
+    sets them, 100 evaluation episodes, ablations at a fifth of the steps."""
+    raw = json.loads(shipped_configs.path(PAPER_CONFIG).read_text())
+    policy = raw["policy"]
+    return Budget(
+        steps=raw["steps"],
+        batch_size=raw["batch_size"],
+        down_dims=tuple(policy["down_dims"]),
+        embed_dim=policy["diffusion_step_embed_dim"],
+        lr=policy["optimizer_lr"],
+        warmup=policy["scheduler_warmup_steps"],
+        n_episodes=100,
+        num_inference_steps=policy["num_inference_steps"],
+        scheduler=policy["noise_scheduler_type"],
+        ablation_steps=raw["steps"] // 5,
+    )
+
 
 SCHEMES = {  # the paper's Table (b): name -> noise_schemes weights
     "chunkwise": {"chunkwise": 1.0},
@@ -89,8 +111,9 @@ class Run:
 
 
 def policy_args(budget: Budget, policy: str, device: str, dp_horizon: int = DP_HORIZON) -> list[str]:
-    common = [
-        f"--policy.type={policy}",
+    """`lerobot-train` flags of the budget's SDP, or of the DP that matches it (`matched_dp`)."""
+    sdp = [
+        "--policy.type=sdp",
         "--policy.n_obs_steps=2",
         "--policy.n_action_steps=8",
         f"--policy.down_dims=[{','.join(map(str, budget.down_dims))}]",
@@ -103,10 +126,9 @@ def policy_args(budget: Budget, policy: str, device: str, dp_horizon: int = DP_H
         f"--policy.scheduler_warmup_steps={budget.warmup}",
         f"--policy.device={device}",
         "--policy.push_to_hub=false",
+        "--policy.use_ema=false",
     ]
-    if policy == "diffusion":
-        return [*common, f"--policy.horizon={dp_horizon}", "--policy.pretrained_backbone_weights=null"]
-    return [*common, "--policy.use_ema=false"]
+    return matching_dp_flags(sdp, dp_horizon) if policy == "diffusion" else sdp
 
 
 def sdp_args(budget: Budget, device: str, n_chunks: int, schemes: dict | None = None) -> list[str]:
@@ -309,7 +331,7 @@ def markdown(rows: dict[str, dict], budget_name: str, budget: Budget) -> str:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--budget", choices=list(BUDGETS), default="cpu")
+    parser.add_argument("--budget", choices=[*BUDGETS, "paper"], default="cpu")
     parser.add_argument(
         "--runs",
         choices=["comparison", "horizon_control", "ablations", "warmstart", "all"],
@@ -355,7 +377,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def resolve_budget(args: argparse.Namespace) -> tuple[str, Budget]:
     """The budget's name and settings, with --steps applied to every run (comparison and ablations)."""
-    budget = BUDGETS[args.budget]
+    budget = paper_budget() if args.budget == "paper" else BUDGETS[args.budget]
     if args.steps is None:
         return args.budget, budget
     if args.steps < 1:

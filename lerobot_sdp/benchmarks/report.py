@@ -21,3 +21,60 @@ def with_se(row: dict, key: str, digits: int) -> str:
 def write_json(path: Path, report: dict) -> None:
     """The report as indented JSON (paths and other objects written as their str)."""
     path.write_text(json.dumps(report, indent=2, default=str))
+
+
+METRICS = (("avg_max_reward", "avg_max_reward"), ("pc_success", "success (%)"))
+
+
+def reward_success_plot(
+    series: dict[str, list[dict]],
+    x_axes: Sequence[tuple[str, str, float]],
+    title: str,
+    annotate: str | None = None,
+    log_x: bool = False,
+):
+    """The benchmarks' figure: avg_max_reward (top row) and success (bottom row), each with its
+    standard error, against every x of ``x_axes`` ((key, label, divisor): one column each), one line
+    per entry of ``series`` (label -> points, dicts with the x keys and the metrics). ``annotate``
+    names a point key written beside each point. Returns (figure, axes (2, columns)) for a caller
+    to mark up, then `save_figure`."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(
+        2, len(x_axes), figsize=(max(8.0, 5.5 * len(x_axes)), 7.5), sharey="row", squeeze=False
+    )
+    for label, points in series.items():
+        for col, (x_key, _, divisor) in enumerate(x_axes):
+            xs = [p[x_key] / divisor for p in points]
+            for row, (y_key, _) in enumerate(METRICS):
+                ys = [p[y_key] for p in points]
+                errs = [p.get(f"{y_key}_se", 0.0) for p in points]
+                axes[row, col].errorbar(xs, ys, yerr=errs, marker="o", capsize=3, label=label)
+                if annotate:
+                    for p, x, y in zip(points, xs, ys, strict=True):
+                        axes[row, col].annotate(
+                            p[annotate], (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points"
+                        )
+    for col, (_, x_label, _) in enumerate(x_axes):
+        axes[1, col].set_xlabel(x_label)
+    for row, (_, y_label) in enumerate(METRICS):
+        axes[row, 0].set_ylabel(y_label)
+    for ax in axes.flat:
+        ax.grid(alpha=0.3)
+        if log_x:
+            ax.set_xscale("log")
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle(title, fontsize=10)
+    return fig, axes
+
+
+def save_figure(fig, path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -5,15 +5,13 @@ Builds everything with LeRobot's own factories from a training config (`make_dat
 and DataLoader settings `lerobot-train` uses) and times each phase of the step the way
 `lerobot-train`'s `update_policy` runs it: data (waiting for the DataLoader), preprocess, forward,
 backward, optimizer (gradient clipping, optimizer and lr-scheduler step), EMA (`policy.update()`,
-SDP only). Both policies share the config's U-Net, batch and data. DP's horizon is SDP's by default
-(the same denoiser input, as in the latency benchmark: DiffusionConfig asks for a multiple of
-2**len(down_dims), stricter than its U-Net needs, so the config is built at the next multiple and
-its horizon set back to SDP's), or `--dp_horizon`, e.g. LeRobot's Push-T reference 16.
+SDP only). Both policies share the config's batch and data; DP is the one that matches the
+config's SDP (`matched_dp`: every shared field, the U-Net included), at SDP's horizon (the same
+denoiser input, as in the latency benchmark) or `--dp_horizon`, e.g. LeRobot's Push-T reference 16.
 Output: OUTPUT_DIR/train_profile.json and a Markdown table on stdout.
 """
 
 import argparse
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,6 +19,7 @@ from pathlib import Path
 import torch
 
 from .. import shipped_configs
+from .matched_dp import matching_dp_config
 from .report import table, write_json
 
 PHASES = ("data", "preprocess", "forward", "backward", "optimizer", "ema")
@@ -50,11 +49,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def train_config(args: argparse.Namespace, policy: str):
-    """The config's TrainPipelineConfig; for DP the same U-Net fields under `--policy.type=diffusion`."""
+    """The config's TrainPipelineConfig; for DP, the DP that matches its SDP (`matched_dp`)."""
     import draccus
     from lerobot.configs.train import TrainPipelineConfig
 
-    raw = json.loads(args.config_path.read_text())
     overrides = [
         f"--dataset.repo_id={args.repo_id}",
         f"--dataset.root={args.dataset_root}",
@@ -64,22 +62,10 @@ def train_config(args: argparse.Namespace, policy: str):
         overrides.append(f"--num_workers={args.num_workers}")
     if args.batch_size is not None:
         overrides.append(f"--batch_size={args.batch_size}")
-    if policy == "diffusion":
-        shared = ("n_obs_steps", "n_action_steps", "down_dims", "kernel_size", "diffusion_step_embed_dim")
-        shared += ("noise_scheduler_type", "num_train_timesteps", "num_inference_steps", "prediction_type")
-        shared += ("optimizer_lr", "scheduler_warmup_steps")
-        raw["policy"] = {"type": "diffusion", **{k: raw["policy"][k] for k in shared if k in raw["policy"]}}
-        horizon = args.dp_horizon or train_config(args, "sdp").policy.horizon
-        factor = 2 ** len(raw["policy"]["down_dims"])
-        raw["policy"].update(horizon=-(-horizon // factor) * factor, pretrained_backbone_weights=None)
-        raw["policy"]["push_to_hub"] = False
-    path = args.output_dir / f"{policy}_config.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(raw))
-    cfg = draccus.parse(TrainPipelineConfig, config_path=str(path), args=overrides)
+    cfg = draccus.parse(TrainPipelineConfig, config_path=str(args.config_path), args=overrides)
     cfg.validate()
     if policy == "diffusion":
-        cfg.policy.horizon = horizon
+        cfg.policy = matching_dp_config(cfg.policy, args.dp_horizon)
     return cfg
 
 
