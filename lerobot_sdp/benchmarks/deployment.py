@@ -286,16 +286,10 @@ def measure(name: str, path: Path, engine: str, args) -> dict:
 
 
 def markdown(rows: list[dict]) -> str:
-    header = [
-        "policy",
-        "engine",
-        "episodes",
-        "avg_max_reward",
-        "success %",
-        "missed ticks / episode (max)",
-        "target jump p95 (px, median episode)",
-        "note",
-    ]
+    header = (
+        "policy | engine | episodes | avg_max_reward | success % | missed ticks / episode (max) | "
+        "target jump p95 (px, median episode) | note"
+    ).split(" | ")
     cells = []
     for r in rows:
         if "avg_max_reward" not in r:

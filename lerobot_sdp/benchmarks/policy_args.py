@@ -1,7 +1,10 @@
-"""`--policy NAME=PATH`, as the benchmarks that compare trained checkpoints take them."""
+"""The arguments benchmarks share: `--policy NAME=PATH` for those that compare trained checkpoints,
+a training config and a local dataset for those that time training."""
 
 import argparse
 from pathlib import Path
+
+from .. import shipped_configs
 
 
 def add_policy_argument(p: argparse.ArgumentParser) -> None:
@@ -25,3 +28,17 @@ def parse_policies(specs: list[str]) -> dict[str, Path]:
             raise SystemExit(f"--policy {name}: {path} has no config.json; pass a pretrained_model folder.")
         policies[name] = Path(path)
     return policies
+
+
+def add_training_arguments(p: argparse.ArgumentParser) -> None:
+    """`--config_path` (a file or a shipped config's name), `--dataset_root`, `--repo_id`."""
+    p.add_argument(
+        "--config_path",
+        type=shipped_configs.config_argument,
+        default="pusht_state_cpu",
+        help="a config file, or the name of a shipped one (python -m lerobot_sdp.shipped_configs)",
+    )
+    p.add_argument(
+        "--dataset_root", type=Path, required=True, help="local LeRobotDataset (e.g. the converted zarr)"
+    )
+    p.add_argument("--repo_id", default="local/pusht_keypoints")

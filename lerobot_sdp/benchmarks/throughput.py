@@ -27,9 +27,9 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
-from .. import shipped_configs
 from ..lerobot_cli import lerobot_bin
 from .curves import parse_step
+from .policy_args import add_training_arguments
 from .report import table, write_json
 
 STEP_LOG = re.compile(r"step:(\d+(?:\.\d+)?[KM]?) .*updt_s:([\d.]+) data_s:([\d.]+)")
@@ -46,14 +46,7 @@ VARIANTS = {
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--config_path",
-        type=shipped_configs.config_argument,
-        default="pusht_state_cpu",
-        help="a config file, or the name of a shipped one (python -m lerobot_sdp.shipped_configs)",
-    )
-    p.add_argument("--dataset_root", type=Path, required=True)
-    p.add_argument("--repo_id", default="local/pusht_keypoints")
+    add_training_arguments(p)
     p.add_argument("--variants", nargs="+", default=["baseline", "tuned"], choices=list(VARIANTS))
     p.add_argument("--steps", type=int, default=400)
     p.add_argument("--log_freq", type=int, default=50)

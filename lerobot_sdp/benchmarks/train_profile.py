@@ -18,24 +18,15 @@ from pathlib import Path
 
 import torch
 
-from .. import shipped_configs
 from .matched_dp import matching_dp_config
+from .policy_args import add_training_arguments
 from .report import table, write_json
 
 PHASES = ("data", "preprocess", "forward", "backward", "optimizer", "ema")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--config_path",
-        type=shipped_configs.config_argument,
-        default="pusht_state_cpu",
-        help="a config file, or the name of a shipped one (python -m lerobot_sdp.shipped_configs)",
-    )
-    p.add_argument(
-        "--dataset_root", type=Path, required=True, help="local LeRobotDataset (e.g. the converted zarr)"
-    )
-    p.add_argument("--repo_id", default="local/pusht_keypoints")
+    add_training_arguments(p)
     p.add_argument("--policies", nargs="+", default=["sdp", "diffusion"], choices=["sdp", "diffusion"])
     p.add_argument("--steps", type=int, default=30, help="timed steps per policy (after --warmup)")
     p.add_argument("--warmup", type=int, default=5)
