@@ -285,30 +285,33 @@ def measure(name: str, path: Path, engine: str, args) -> dict:
     return row | (summarise(episodes) if episodes else {})
 
 
+def jump_cell(row: dict) -> str:
+    jump = row["action_jump_p95_px_median"]
+    return "" if jump is None else f"{jump:.1f}"
+
+
+# column -> its cell of a measured row; a row that could not run fills only policy, engine and note
+COLUMNS = {
+    "policy": lambda r: r["policy"],
+    "engine": lambda r: r["engine"],
+    "episodes": lambda r: r["n_episodes"],
+    "avg_max_reward": lambda r: with_se(r, "avg_max_reward", 3),
+    "success %": lambda r: with_se(r, "pc_success", 0),
+    "missed ticks / episode (max)": lambda r: (
+        f"{r['missed_ticks_per_episode']:.1f} ({r['missed_ticks_max']})"
+    ),
+    "target jump p95 (px, median episode)": jump_cell,
+    "note": lambda r: r.get("error", ""),
+}
+ALWAYS = ("policy", "engine", "note")
+
+
 def markdown(rows: list[dict]) -> str:
-    header = (
-        "policy | engine | episodes | avg_max_reward | success % | missed ticks / episode (max) | "
-        "target jump p95 (px, median episode) | note"
-    ).split(" | ")
-    cells = []
-    for r in rows:
-        if "avg_max_reward" not in r:
-            cells.append([r["policy"], r["engine"], "", "", "", "", "", r.get("error", "")])
-            continue
-        jump = r["action_jump_p95_px_median"]
-        cells.append(
-            [
-                r["policy"],
-                r["engine"],
-                r["n_episodes"],
-                with_se(r, "avg_max_reward", 3),
-                with_se(r, "pc_success", 0),
-                f"{r['missed_ticks_per_episode']:.1f} ({r['missed_ticks_max']})",
-                "" if jump is None else f"{jump:.1f}",
-                r.get("error", ""),
-            ]
-        )
-    return "\n".join(table(header, cells)) + "\n"
+    cells = [
+        [cell(r) if "avg_max_reward" in r or name in ALWAYS else "" for name, cell in COLUMNS.items()]
+        for r in rows
+    ]
+    return "\n".join(table(list(COLUMNS), cells)) + "\n"
 
 
 def run(args: argparse.Namespace) -> list[dict]:
