@@ -47,7 +47,7 @@ from .observations import (
     repeated_frame,
     stack_cameras,
 )
-from .rtc import rest_of_last_chunk, rest_then_chunk
+from .rtc import committed_under_rtc, engine_result, rest_of_last_chunk
 from .schedule import PerSlotSchedule, StepCoefficients
 from .unet import make_variable_noise, plan_embedding_cache
 from .warm_start import WarmStartReport, merged_stats, warm_start
@@ -371,15 +371,17 @@ class SDPPolicy(PreTrainedPolicy):
         left_over: Tensor | None,
         **kwargs,
     ) -> Tensor:
-        """One RTC engine call (`rtc.py`): the frame repeated as the history, the rest of the last chunk
-        committed when the policy was trained with `max_delay`, the rest followed by the new chunk."""
+        """One RTC engine call (`rtc.py`): the frame repeated as the history; the action of the frame's
+        tick and the rest of the last chunk committed when the policy was trained with `max_delay`;
+        the result timed from the frame's tick (a slot for it, the rest, the new chunk)."""
         reject_unknown_kwargs("predict_action_chunk", kwargs)
         history = repeated_frame(self.config, batch)
         rest = rest_of_last_chunk(self.config, left_over) if left_over is not None else None
-        # the rest is the end of the buffer's last chunk unless the stream restarted since
-        committed = len(rest) if rest is not None and self._buffer.last_chunk is not None else 0
-        chunk = self._stream_step(history, generator, compiled, committed if self.config.max_delay else 0)
-        return rest_then_chunk(rest, chunk)
+        # the rest and the action before it end the buffer's last chunk unless the stream restarted
+        streaming = rest is not None and self._buffer.last_chunk is not None
+        committed = committed_under_rtc(len(rest)) if streaming and self.config.max_delay else 0
+        chunk = self._stream_step(history, generator, compiled, committed)
+        return engine_result(rest, chunk)
 
     def _stream_step(
         self,

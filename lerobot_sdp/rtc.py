@@ -1,11 +1,18 @@
 """LeRobot's RTC engine (`lerobot-rollout --inference.type=rtc`) as SDP reads it.
 
-The engine calls `predict_action_chunk(frame, inference_delay=d, prev_chunk_left_over=rest)` with one
-frame (it never sees every control tick, so the history is that frame repeated) and the unexecuted
-rest of what the last call returned, zero-padded to `--inference.rtc.execution_horizon`. SDP answers
-that rest followed by the buffer's next chunk; the engine drops the first d actions (executed while
-the call ran). SDP streams one chunk per call, so the engine must call once per chunk; a policy
-trained with `max_delay` denoises the chunk with the rest as committed slots (docs/deployment.md).
+Every control tick the engine's loop reads an observation, publishes it, and sends the queue's next
+action; its thread calls `predict_action_chunk(frame, inference_delay=d, prev_chunk_left_over=rest)`
+once the queue is down to `--inference.queue_threshold` K actions, with the newest frame (it never
+sees every tick, so the history is that frame repeated) and those K unexecuted actions, zero-padded
+to `--inference.rtc.execution_horizon`. The engine reads the result as timed from the frame's own
+tick t, whose action the robot has already sent: it drops the first ceil(latency / tick) actions,
+at least one however fast the call (LeRobot's flow policies predict from tick t).
+
+So SDP answers one slot for tick t (already run, always dropped), the rest (ticks t + 1 .. t + K),
+then the buffer's next chunk (from t + K + 1): every streamed action runs once, none is skipped. A
+policy trained with `max_delay` denoises that chunk with the action of tick t and the rest as K + 1
+committed slots, as in training, where the observation of tick t precedes its own action. SDP
+streams one chunk per call, so the engine must call once per chunk (docs/deployment.md).
 """
 
 import torch
@@ -28,18 +35,28 @@ def rest_of_last_chunk(config: SDPConfig, left_over: Tensor) -> Tensor:
             f"`lerobot-rollout --inference.type=rtc --inference.queue_threshold=K` with K < {tb} "
             f"(about the inference time in control ticks) and --inference.rtc.execution_horizon >= {tb}."
         )
-    if max_delay and n > max_delay:
+    if max_delay and committed_under_rtc(n) > max_delay:
         raise ValueError(
-            f"This SDP policy was trained for at most max_delay={max_delay} actions left when a chunk "
-            f"is requested, and the RTC engine called with {n} left. Run `lerobot-rollout "
-            f"--inference.type=rtc --inference.queue_threshold=K` with K <= {max_delay} (the inference "
-            "time in control ticks), or train with a larger `--policy.max_delay`."
+            f"This SDP policy was trained for at most max_delay={max_delay} committed actions, and the "
+            f"RTC engine called with {n} left, which with the action of the observation's own tick makes "
+            f"{committed_under_rtc(n)}. Run `lerobot-rollout --inference.type=rtc "
+            f"--inference.queue_threshold=K` with K <= {max_delay - 1} (the inference time in control "
+            "ticks, rounded up, less one), or train with a larger `--policy.max_delay`."
         )
     return rows[:n]
 
 
-def rest_then_chunk(rest: Tensor | None, chunk: Tensor) -> Tensor:
-    """What the engine expects back: the rest (T, A), for every batch row, then the new chunk."""
-    if rest is None:
-        return chunk
-    return torch.cat([rest.to(chunk).unsqueeze(0).expand(chunk.shape[0], -1, -1), chunk], dim=1)
+def committed_under_rtc(n_left: int) -> int:
+    """Actions decided before a chunk the engine asks for with ``n_left`` unexecuted: those and the
+    action of the observation's own tick."""
+    return n_left + 1
+
+
+def engine_result(rest: Tensor | None, chunk: Tensor) -> Tensor:
+    """What the engine expects back, timed from the observation's tick: a slot for that tick (already
+    run; the engine drops it, so it repeats the next action), the rest (T, A) for every batch row,
+    then the new chunk."""
+    following = chunk
+    if rest is not None:
+        following = torch.cat([rest.to(chunk).unsqueeze(0).expand(chunk.shape[0], -1, -1), chunk], dim=1)
+    return torch.cat([following[:, :1], following], dim=1)

@@ -1,6 +1,9 @@
 """SDP under LeRobot's RTC engine (`lerobot-rollout --inference.type=rtc`): the call shape LeRobot
-checks, the leftover-then-next-chunk result driven through LeRobot's own ActionQueue, and the clear
-error when the engine calls more often than once per chunk."""
+checks, the result timed from the observation's tick (its slot, the leftover, the next chunk) driven
+through LeRobot's own ActionQueue on the engine's clock, and the clear error when the engine calls
+more often than once per chunk."""
+
+import math
 
 import pytest
 import torch
@@ -34,8 +37,10 @@ def test_rtc_calls_return_the_leftover_then_the_buffers_next_chunk():
     first = policy.predict_action_chunk(
         frame(cfg, 1), generator=g, inference_delay=0, prev_chunk_left_over=None
     )
-    assert first.shape == (1, tb, 2) and len(calls) == policy.geometry.steps_per_call
-    queue.merge(first[0], first[0], real_delay=1)  # the engine drops what ran during the call
+    # timed from the frame's tick: a slot for that tick (the engine drops it), then the chunk
+    assert first.shape == (1, 1 + tb, 2) and len(calls) == policy.geometry.steps_per_call
+    queue.merge(first[0], first[0], real_delay=1)  # a call faster than a tick: the engine drops one
+    assert torch.equal(queue.get(), first[0, 1])  # the chunk's first action runs first
     for _ in range(tb - 3):
         queue.get()
     left = queue.get_left_over()
@@ -44,8 +49,8 @@ def test_rtc_calls_return_the_leftover_then_the_buffers_next_chunk():
     second = policy.predict_action_chunk(
         frame(cfg, 2), generator=g, inference_delay=1, prev_chunk_left_over=padded
     )
-    assert second.shape == (1, 2 + tb, 2) and len(calls) == 2 * policy.geometry.steps_per_call
-    assert torch.equal(second[0, :2], left)  # the robot finishes the previous chunk first
+    assert second.shape == (1, 1 + 2 + tb, 2) and len(calls) == 2 * policy.geometry.steps_per_call
+    assert torch.equal(second[0, 1:3], left)  # after the frame's tick the robot finishes the chunk
 
     # the new part is the stream's next chunk, each call's frame repeated as its history
     def history(seed):
@@ -55,7 +60,7 @@ def test_rtc_calls_return_the_leftover_then_the_buffers_next_chunk():
         }
 
     reference.predict_action_chunk(history(1), generator=g_ref)
-    torch.testing.assert_close(second[:, 2:], reference.predict_action_chunk(history(2), generator=g_ref))
+    torch.testing.assert_close(second[:, 3:], reference.predict_action_chunk(history(2), generator=g_ref))
 
 
 def test_rtc_called_more_often_than_once_per_chunk_is_a_clear_error():
@@ -67,10 +72,11 @@ def test_rtc_called_more_often_than_once_per_chunk_is_a_clear_error():
         policy.predict_action_chunk(frame(cfg, 2), inference_delay=1, prev_chunk_left_over=full)
 
 
-def test_a_delay_trained_policy_denoises_the_rtc_leftover_as_committed_slots():
-    """Trained with max_delay, the chunk after the leftover is the one that follows it (the leftover
-    enters the denoised sequence clean), not one denoised as if it started at the observation."""
-    cfg = tiny_config(max_delay=2)
+def test_a_delay_trained_policy_commits_the_frames_own_action_and_the_leftover():
+    """Trained with max_delay, the chunk after the leftover is the one that follows it: the action the
+    robot ran at the frame's tick and the leftover enter the denoised sequence clean, as in training,
+    where the observation of tick t precedes its own action."""
+    cfg = tiny_config(max_delay=3)
     tb, horizon = cfg.n_action_steps, 10
     policy = SDPPolicy(cfg).eval()
     reference = SDPPolicy(cfg).eval()
@@ -80,15 +86,15 @@ def test_a_delay_trained_policy_denoises_the_rtc_leftover_as_committed_slots():
     first = policy.predict_action_chunk(
         frame(cfg, 1), generator=g, inference_delay=0, prev_chunk_left_over=None
     )
-    queue.merge(first[0], first[0], real_delay=0)
+    queue.merge(first[0], first[0], real_delay=1)
     for _ in range(tb - 2):
         queue.get()
     left = queue.get_left_over()
     padded = _normalize_prev_actions_length(left, target_steps=horizon)
     second = policy.predict_action_chunk(
-        frame(cfg, 2), generator=g, inference_delay=2, prev_chunk_left_over=padded
+        frame(cfg, 2), generator=g, inference_delay=1, prev_chunk_left_over=padded
     )
-    assert torch.equal(second[0, :2], left)
+    assert torch.equal(second[0, 1:3], left)
 
     def history(seed):
         return {
@@ -97,8 +103,8 @@ def test_a_delay_trained_policy_denoises_the_rtc_leftover_as_committed_slots():
         }
 
     reference.predict_action_chunk(history(1), generator=g_ref)
-    expected = reference.predict_action_chunk(history(2), generator=g_ref, committed=2)
-    torch.testing.assert_close(second[:, 2:], expected)
+    expected = reference.predict_action_chunk(history(2), generator=g_ref, committed=3)
+    torch.testing.assert_close(second[:, 3:], expected)
 
     # more actions left than the policy was trained to commit: the fix is named
     policy.predict_action_chunk(frame(cfg, 3), inference_delay=0, prev_chunk_left_over=None)
@@ -107,14 +113,18 @@ def test_a_delay_trained_policy_denoises_the_rtc_leftover_as_committed_slots():
         policy.predict_action_chunk(frame(cfg, 4), inference_delay=1, prev_chunk_left_over=three)
 
 
-@pytest.mark.parametrize("max_delay", [0, 2])
-def test_on_the_engines_clock_each_chunk_starts_threshold_ticks_after_its_observation(max_delay):
-    """LeRobot's RTC engine on a simulated clock, with its own ActionQueue: the call starts when
-    `queue_threshold` (K = 2) actions are left, takes d = 2 ticks, and its result replaces the queue
-    after the d actions that ran meanwhile. Each new chunk's first action runs K ticks after the
-    observation it was built from, the robot never waits, and a policy trained with max_delay is
-    told (its chunk is the one denoised with those K actions committed)."""
-    k = d = 2
+@pytest.mark.parametrize(
+    ("max_delay", "k", "latency"), [(0, 0, 0.3), (0, 1, 1.5), (3, 0, 0.3), (3, 1, 0.3), (3, 2, 1.5)]
+)
+def test_on_the_engines_clock_every_streamed_action_runs_once_k_plus_1_ticks_after_its_frame(
+    max_delay, k, latency
+):
+    """LeRobot's RTC engine on a simulated clock, in its own order: each tick the loop publishes the
+    tick's frame and sends the queue's next action; once the queue is down to K (`queue_threshold`)
+    the thread calls on that frame, and `latency` ticks later the result replaces the queue after its
+    first ceil(latency) actions (LeRobot's ActionQueue.merge). The robot never waits after the first
+    chunk, runs every streamed action exactly once, in order, each chunk from K + 1 ticks after the
+    frame it was built from; a policy trained with max_delay is told (K + 1 committed slots)."""
     horizon = 10
     cfg = tiny_config(max_delay=max_delay)
     policy = SDPPolicy(cfg).eval()
@@ -124,30 +134,32 @@ def test_on_the_engines_clock_each_chunk_starts_threshold_ticks_after_its_observ
     pending, calls, ran = None, [], []
     torch.manual_seed(0)
     for tick in range(40):
-        if pending is not None and pending[0] == tick:
+        if pending is not None and pending[0] < tick:  # the result came in before this tick's action
             _, result, index_before = pending
-            queue.merge(result[0], result[0], real_delay=d, action_index_before_inference=index_before)
+            queue.merge(result[0], result[0], math.ceil(latency), action_index_before_inference=index_before)
             pending = None
-        if pending is None and queue.qsize() <= k:
+        ran.append(queue.get())
+        if pending is None and queue.qsize() <= k:  # the thread's call, right after the action went
             left = queue.get_left_over()
             padded = None if left is None else _normalize_prev_actions_length(left, target_steps=horizon)
             result = policy.predict_action_chunk(
-                frame(cfg, tick), inference_delay=d, prev_chunk_left_over=padded
+                frame(cfg, tick), inference_delay=1, prev_chunk_left_over=padded
             )
             n_left = 0 if left is None else len(left)
-            calls.append((tick, n_left, result[0, n_left].clone()))  # the new chunk's first action
-            ready = tick + (d if left is not None else 0)
-            pending = (ready, result, queue.get_action_index())
-            if ready == tick:
-                queue.merge(result[0], result[0], real_delay=0)
-                pending = None
-        ran.append(queue.get())
-    assert all(a is not None for a in ran)  # never a tick without an action
-    assert len(calls) >= 8
-    for tick, n_left, first in calls[1:]:
-        assert n_left == k
-        if tick + n_left < len(ran):
-            assert torch.equal(ran[tick + n_left], first)  # observation at `tick`, its chunk from tick + K
+            calls.append((tick, n_left, result[0, 1 + n_left :].clone()))  # the new chunk
+            pending = (tick + latency, result, queue.get_action_index())
+    first_run = next(i for i, a in enumerate(ran) if a is not None)
+    assert all(a is not None for a in ran[first_run:])  # never a tick without an action
+    assert len(calls) >= 8 and all(n_left == k for _, n_left, _ in calls[1:])
+    # the engine drops ceil(latency) actions of every result, of an episode's first one too, though the
+    # robot ran none of it (LeRobot's delay model, the same for every policy): a slower first call
+    # loses ceil(latency) - 1 actions of the first chunk; from then on nothing is lost
+    lost = math.ceil(latency) - 1
+    streamed = torch.cat([calls[0][2][lost:], *(chunk for _, _, chunk in calls[1:])])
+    assert torch.equal(torch.stack(ran[first_run:]), streamed[: len(ran) - first_run])  # once each, in order
+    for i, (tick, _, _) in enumerate(calls[1:], start=1):
+        start = first_run + i * cfg.n_action_steps - lost
+        assert start >= len(ran) or start == tick + k + 1  # the frame of `tick`, its chunk from tick + K + 1
 
     def history(seed):
         return {
@@ -158,6 +170,8 @@ def test_on_the_engines_clock_each_chunk_starts_threshold_ticks_after_its_observ
     torch.manual_seed(0)
     expected = [reference.predict_action_chunk(history(calls[0][0]))]
     for tick, n_left, _ in calls[1:]:
-        expected.append(reference.predict_action_chunk(history(tick), committed=n_left if max_delay else 0))
-    for (_, _, first), chunk in zip(calls, expected, strict=True):
-        torch.testing.assert_close(first, chunk[0, 0])
+        expected.append(
+            reference.predict_action_chunk(history(tick), committed=n_left + 1 if max_delay else 0)
+        )
+    for (_, _, chunk), reference_chunk in zip(calls, expected, strict=True):
+        torch.testing.assert_close(chunk, reference_chunk[0])

@@ -30,12 +30,22 @@ def parse_policies(specs: list[str]) -> dict[str, Path]:
     return policies
 
 
-def add_training_arguments(p: argparse.ArgumentParser) -> None:
-    """`--config_path` (a file or a shipped config's name), `--dataset_root`, `--repo_id`."""
+DEFAULT_CONFIG = "pusht_state_cpu"
+
+
+def configs(args: argparse.Namespace) -> list[Path]:
+    """`--config_path` of `add_training_arguments(several_configs=True)` as a list, the default too."""
+    return args.config_path if isinstance(args.config_path, list) else [args.config_path]
+
+
+def add_training_arguments(p: argparse.ArgumentParser, several_configs: bool = False) -> None:
+    """`--config_path` (a file or a shipped config's name; one or more with ``several_configs``),
+    `--dataset_root`, `--repo_id`."""
     p.add_argument(
         "--config_path",
         type=shipped_configs.config_argument,
-        default="pusht_state_cpu",
+        nargs="+" if several_configs else None,
+        default=DEFAULT_CONFIG,  # argparse applies the type to it: a path, a list of one after configs()
         help="a config file, or the name of a shipped one (python -m lerobot_sdp.shipped_configs)",
     )
     p.add_argument(

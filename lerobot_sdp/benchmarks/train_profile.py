@@ -8,6 +8,11 @@ backward, optimizer (gradient clipping, optimizer and lr-scheduler step), EMA (`
 SDP only). Both policies share the config's batch and data; DP is the one that matches the
 config's SDP (`matched_dp`: every shared field, the U-Net included), at SDP's horizon (the same
 denoiser input, as in the latency benchmark) or `--dp_horizon`, e.g. LeRobot's Push-T reference 16.
+
+Every policy of every config (`--config_path` takes several, e.g. the same recipe with and without
+`max_delay`) is built first, then they take their steps in turn, one step each per round (the order
+reversed every other round), so that a machine whose speed drifts over minutes slows them all alike
+and the ratios between them hold; each row's model time is also given relative to the first row's.
 Output: OUTPUT_DIR/train_profile.json and a Markdown table on stdout.
 """
 
@@ -19,14 +24,14 @@ from pathlib import Path
 import torch
 
 from .matched_dp import matching_dp_config
-from .policy_args import add_training_arguments
+from .policy_args import add_training_arguments, configs
 from .report import table, write_json
 
 PHASES = ("data", "preprocess", "forward", "backward", "optimizer", "ema")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    add_training_arguments(p)
+    add_training_arguments(p, several_configs=True)
     p.add_argument("--policies", nargs="+", default=["sdp", "diffusion"], choices=["sdp", "diffusion"])
     p.add_argument("--steps", type=int, default=30, help="timed steps per policy (after --warmup)")
     p.add_argument("--warmup", type=int, default=5)
@@ -39,7 +44,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--output_dir", type=Path, default=Path("outputs/benchmarks/train_profile"))
 
 
-def train_config(args: argparse.Namespace, policy: str):
+def train_config(args: argparse.Namespace, config_path: Path, policy: str):
     """The config's TrainPipelineConfig; for DP, the DP that matches its SDP (`matched_dp`)."""
     import draccus
     from lerobot.configs.train import TrainPipelineConfig
@@ -53,7 +58,7 @@ def train_config(args: argparse.Namespace, policy: str):
         overrides.append(f"--num_workers={args.num_workers}")
     if args.batch_size is not None:
         overrides.append(f"--batch_size={args.batch_size}")
-    cfg = draccus.parse(TrainPipelineConfig, config_path=str(args.config_path), args=overrides)
+    cfg = draccus.parse(TrainPipelineConfig, config_path=str(config_path), args=overrides)
     cfg.validate()
     if policy == "diffusion":
         cfg.policy = matching_dp_config(cfg.policy, args.dp_horizon)
@@ -70,13 +75,28 @@ class Timer:
         return now
 
 
-def profile_policy(args: argparse.Namespace, policy_type: str) -> dict:
+@dataclass
+class Contender:
+    """One policy of one config, built as `lerobot-train` builds it, stepped one step at a time."""
+
+    name: str
+    config_path: Path
+    cfg: object
+    policy: torch.nn.Module
+    preprocessor: object
+    optimizer: torch.optim.Optimizer
+    scheduler: object
+    batches: object
+    timer: Timer
+
+
+def build(args: argparse.Namespace, config_path: Path, policy_type: str, name: str) -> Contender:
     from lerobot.datasets import EpisodeAwareSampler
     from lerobot.datasets.factory import make_dataset
     from lerobot.optim.factory import make_optimizer_and_scheduler
     from lerobot.policies.factory import make_policy, make_pre_post_processors
 
-    cfg = train_config(args, policy_type)
+    cfg = train_config(args, config_path, policy_type)
     dataset = make_dataset(cfg)
     policy = make_policy(cfg.policy, ds_meta=dataset.meta)
     preprocessor, _ = make_pre_post_processors(cfg.policy, dataset_stats=dataset.meta.stats)
@@ -97,53 +117,80 @@ def profile_policy(args: argparse.Namespace, policy_type: str) -> dict:
         persistent_workers=cfg.num_workers > 0,
         drop_last=False,
     )
-    batches = iter(loader)
-    timer = Timer({phase: [] for phase in PHASES})
     policy.train()
-    for step in range(args.warmup + args.steps):
-        if step == args.warmup:
-            timer.seconds = {phase: [] for phase in PHASES}
-        t = time.perf_counter()
-        batch = next(batches)
-        t = timer("data", t)
-        batch = preprocessor(batch)
-        t = timer("preprocess", t)
-        loss, _ = policy.forward(batch)
-        t = timer("forward", t)
-        loss.backward()
-        t = timer("backward", t)
-        torch.nn.utils.clip_grad_norm_(policy.parameters(), cfg.optimizer.grad_clip_norm)
-        optimizer.step()
-        optimizer.zero_grad()
-        if scheduler is not None:
-            scheduler.step()
-        t = timer("optimizer", t)
-        if hasattr(policy, "update"):
-            policy.update()
-        timer("ema", t)
-    ms = {phase: 1e3 * sum(v) / len(v) for phase, v in timer.seconds.items()}
+    timer = Timer({phase: [] for phase in PHASES})
+    return Contender(name, config_path, cfg, policy, preprocessor, optimizer, scheduler, iter(loader), timer)
+
+
+def take_step(c: Contender) -> None:
+    """One training step, each phase timed as `lerobot-train`'s `update_policy` runs it."""
+    t = time.perf_counter()
+    batch = next(c.batches)
+    t = c.timer("data", t)
+    batch = c.preprocessor(batch)
+    t = c.timer("preprocess", t)
+    loss, _ = c.policy.forward(batch)
+    t = c.timer("forward", t)
+    loss.backward()
+    t = c.timer("backward", t)
+    torch.nn.utils.clip_grad_norm_(c.policy.parameters(), c.cfg.optimizer.grad_clip_norm)
+    c.optimizer.step()
+    c.optimizer.zero_grad()
+    if c.scheduler is not None:
+        c.scheduler.step()
+    t = c.timer("optimizer", t)
+    if hasattr(c.policy, "update"):
+        c.policy.update()
+    c.timer("ema", t)
+
+
+def summary(c: Contender) -> dict:
+    ms = {phase: 1e3 * sum(v) / len(v) for phase, v in c.timer.seconds.items()}
     step_ms = sum(ms.values())
     return {
-        "policy": policy_type,
-        "horizon": cfg.policy.horizon,
-        "batch_size": cfg.batch_size,
-        "num_workers": cfg.num_workers,
+        "name": c.name,
+        "policy": c.cfg.policy.type,
+        "config_path": str(c.config_path),
+        "horizon": c.cfg.policy.horizon,
+        "batch_size": c.cfg.batch_size,
+        "num_workers": c.cfg.num_workers,
         "phase_ms": ms,
         "step_ms": step_ms,
         "model_ms": step_ms - ms["data"] - ms["preprocess"],
-        "samples_per_s": 1e3 * cfg.batch_size / step_ms,
+        "samples_per_s": 1e3 * c.cfg.batch_size / step_ms,
     }
 
 
+def profile(args: argparse.Namespace) -> list[dict]:
+    """Every contender, stepped in turn (module docstring); one summary row each."""
+    paths = configs(args)
+    contenders = [
+        build(args, path, policy, f"{policy} ({path.stem})" if len(paths) > 1 else policy)
+        for path in paths
+        for policy in args.policies
+    ]
+    for step in range(args.warmup + args.steps):
+        if step == args.warmup:
+            for c in contenders:
+                c.timer.seconds = {phase: [] for phase in PHASES}
+        for c in contenders if step % 2 == 0 else contenders[::-1]:
+            take_step(c)
+    rows = [summary(c) for c in contenders]
+    for row in rows:
+        row["model_time_vs_first"] = row["model_ms"] / rows[0]["model_ms"]
+    return rows
+
+
 def markdown(rows: list[dict]) -> str:
-    header = ["policy", "horizon", *(f"{p} (ms)" for p in PHASES), "step (ms)", "samples/s"]
+    header = ["policy", "horizon", *(f"{p} (ms)" for p in PHASES), "step (ms)", "samples/s", "model time"]
     cells = [
         [
-            r["policy"],
+            r["name"],
             r["horizon"],
             *(f"{r['phase_ms'][p]:.1f}" for p in PHASES),
             f"{r['step_ms']:.1f}",
             f"{r['samples_per_s']:.0f}",
+            f"{r['model_time_vs_first']:.3f}x",
         ]
         for r in rows
     ]
@@ -152,9 +199,9 @@ def markdown(rows: list[dict]) -> str:
 
 def run(args: argparse.Namespace) -> None:
     torch.set_num_threads(args.num_threads)
-    rows = [profile_policy(args, policy) for policy in args.policies]
-    report = {"num_threads": args.num_threads, "config_path": str(args.config_path), "rows": rows}
-    if {"sdp", "diffusion"} <= {r["policy"] for r in rows}:
+    rows = profile(args)
+    report = {"num_threads": args.num_threads, "config_path": list(map(str, configs(args))), "rows": rows}
+    if len(configs(args)) == 1 and {"sdp", "diffusion"} <= {r["policy"] for r in rows}:
         by = {r["policy"]: r for r in rows}
         report["sdp_over_dp_model_time"] = by["sdp"]["model_ms"] / by["diffusion"]["model_ms"]
     write_json(args.output_dir / "train_profile.json", report)

@@ -1,0 +1,42 @@
+"""`lerobot-sdp-bench train-profile` on a tiny dataset: every policy of every config built as
+`lerobot-train` builds it and stepped in turn (the order reversed every other round), one row each
+with its phases and its model time against the first row's (plumbing, not timed)."""
+
+import json
+
+from sdp_test_utils import make_tiny_pusht_dataset
+
+from lerobot_sdp import shipped_configs
+from lerobot_sdp.benchmarks import cli, train_profile
+
+
+def tiny_config(path, **policy):
+    raw = json.loads(shipped_configs.path("pusht_state_cpu").read_text())
+    raw["policy"].update(down_dims=[16, 32], diffusion_step_embed_dim=16, **policy)
+    raw.update(batch_size=4, num_workers=0)
+    path.write_text(json.dumps(raw))
+    return path
+
+
+def test_configs_and_policies_take_their_steps_in_turn(tmp_path, monkeypatch, capsys):
+    make_tiny_pusht_dataset(tmp_path / "data", n_episodes=2, length=40)
+    md0 = tiny_config(tmp_path / "md0.json")
+    md3 = tiny_config(tmp_path / "md3.json", max_delay=3)
+    order, real_step = [], train_profile.take_step
+    monkeypatch.setattr(train_profile, "take_step", lambda c: (order.append(c.name), real_step(c)))
+    out = tmp_path / "out"
+    cli.main(["train-profile", "--config_path", str(md0), str(md3), "--policies", "sdp", "diffusion",
+              "--dataset_root", str(tmp_path / "data"), "--repo_id", "local/tiny_pusht",
+              "--steps", "2", "--warmup", "1", "--output_dir", str(out)])  # fmt: skip
+    names = ["sdp (md0)", "diffusion (md0)", "sdp (md3)", "diffusion (md3)"]
+    assert order == names + names[::-1] + names  # warm-up round, then two timed rounds
+    rows = json.loads((out / "train_profile.json").read_text())["rows"]
+    assert [r["name"] for r in rows] == names
+    assert [r["policy"] for r in rows] == ["sdp", "diffusion"] * 2
+    # the U-Net downsamples once here (multiples of 2); max_delay 3 makes room for 3 committed slots
+    assert [r["horizon"] for r in rows] == [34, 34, 36, 36]
+    assert rows[0]["model_time_vs_first"] == 1.0
+    for r in rows:
+        assert all(ms >= 0 for ms in r["phase_ms"].values()) and r["phase_ms"]["forward"] > 0
+        assert r["step_ms"] == sum(r["phase_ms"].values())
+    assert "| sdp (md3) | 36 |" in capsys.readouterr().out
