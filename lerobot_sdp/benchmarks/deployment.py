@@ -59,8 +59,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--rtc_threshold",
         type=int,
-        default=2,
-        help="--inference.queue_threshold for rtc: the inference time in ticks, at most max_delay",
+        default=0,
+        help="--inference.queue_threshold for rtc: the inference time in ticks, rounded up, less one "
+        "(0 for a chunk faster than a tick); below max_delay",
     )
     p.add_argument("--port", type=int, default=8080, help="the async policy server's port (loopback)")
     p.add_argument("--output_dir", type=Path, default=Path("outputs/benchmarks/deployment"))

@@ -204,6 +204,7 @@ def run(args: argparse.Namespace) -> None:
     if len(configs(args)) == 1 and {"sdp", "diffusion"} <= {r["policy"] for r in rows}:
         by = {r["policy"]: r for r in rows}
         report["sdp_over_dp_model_time"] = by["sdp"]["model_ms"] / by["diffusion"]["model_ms"]
+    args.output_dir.mkdir(parents=True, exist_ok=True)
     write_json(args.output_dir / "train_profile.json", report)
     print(markdown(rows))
     if "sdp_over_dp_model_time" in report:
