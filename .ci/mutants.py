@@ -57,6 +57,7 @@ CORE_TESTS = [
     "tests/test_benchmarks_delay.py::test_blocking_holds_the_last_target_for_d_ticks_then_runs_the_stale_chunk",
     "tests/test_benchmarks_delay.py::test_naive_async_diffusion_drops_the_actions_that_are_already_past",
     "tests/test_benchmarks_delay.py::test_sdp_chunks_follow_the_actions_left_and_delay_aware_commits_them",
+    "tests/test_benchmarks_delay.py::test_history_is_the_last_frames_or_the_newest_repeated",
     "tests/test_pusht_robot.py::test_the_env_advances_with_the_wall_clock_and_a_stall_holds_the_last_target",
     "tests/test_warm_start.py::test_checkpoint_that_does_not_fit_is_a_clear_error",
 ]
@@ -371,6 +372,10 @@ MUTANTS = [
       "    return n_left + 1",
       "    return n_left",
       "RTC: the action of the observation's own tick is not committed (the chunk is denoised a tick early)"),
+    M("D19", "benchmarks/virtual_clock.py",
+      "[q[-1]] * len(q) if self.frames_only else list(q)",
+      "list(q)",
+      "the delay bench's newest-frame history (the RTC engine's) is the full history"),
     M("D18", "rtc.py",
       "return torch.cat([following[:, :1], following], dim=1)",
       "return following",

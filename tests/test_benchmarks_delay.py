@@ -87,6 +87,22 @@ def test_sdp_chunks_follow_the_actions_left_and_delay_aware_commits_them(mode):
     assert control.held_ticks == 0 and control.chunks == 4
 
 
+@pytest.mark.parametrize("history", ["full", "frame"])
+def test_history_is_the_last_frames_or_the_newest_repeated(history):
+    seen = []
+
+    class Recording(TickCodedPolicy):
+        def predict_action_chunk(self, history, committed=None):
+            seen.append(history["observation.state"][0, :, 0].tolist())  # the ticks of its frames
+            return super().predict_action_chunk(history, committed)
+
+    drive(DelayedControl(Recording("sdp", max_delay=2), "naive_async", delay=1, history=history), 8)
+    # requests at ticks 0 (the first frame repeated at an episode's start), 3 and 7
+    assert seen == ([[0, 0], [2, 3], [6, 7]] if history == "full" else [[0, 0], [3, 3], [7, 7]])
+    with pytest.raises(ValueError, match="Unknown history"):
+        DelayedControl(Recording("sdp"), "naive_async", delay=1, history="two")
+
+
 def test_at_zero_delay_every_mode_is_the_plain_loop():
     runs = [
         drive(DelayedControl(TickCodedPolicy(kind, max_delay=2), mode, delay=0), 12)

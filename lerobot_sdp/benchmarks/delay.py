@@ -35,7 +35,7 @@ from ..pusht.evaluation import EVAL_SEED, OBS_TYPE
 from .episodes import figures
 from .policy_args import add_policy_argument, parse_policies
 from .report import reward_success_plot, save_figure, table, write_json
-from .virtual_clock import MODES, DelayedControl, mode_problem
+from .virtual_clock import HISTORIES, MODES, DelayedControl, mode_problem
 
 FPS = 10  # Push-T's control rate
 DELAYS = (0, 1, 2, 3, 4, 6)
@@ -47,6 +47,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_policy_argument(p)
     p.add_argument("--delays", type=int, nargs="+", default=list(DELAYS), help="inference delays (ticks)")
     p.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES, help="rows to run (default all)")
+    p.add_argument(
+        "--history",
+        choices=HISTORIES,
+        default="full",
+        help="what a chunk is conditioned on: the last n_obs_steps frames, or the newest frame repeated "
+        "(LeRobot's RTC engine)",
+    )
     p.add_argument("--n_episodes", type=int, default=100)
     p.add_argument("--batch_size", type=int, default=50, help="envs stepped together")
     p.add_argument("--seed", type=int, default=EVAL_SEED, help="first episode seed (as lerobot-eval)")
@@ -58,14 +65,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     group.add_argument("--overwrite", action="store_true", help="start results.json over")
 
 
-def rows_of(name: str, policy) -> list[tuple[str, str]]:
-    """(row name, mode) of one policy: its type's modes; delay-aware only when trained for it."""
+def rows_of(name: str, policy, history: str = "full") -> list[tuple[str, str]]:
+    """(row name, mode) of one policy: its type's modes; delay-aware only when trained for it. Rows
+    conditioned on the newest frame only are named so."""
     modes = MODES_OF.get(policy.config.type)
     if modes is None:
         raise SystemExit(f"--policy {name}: type {policy.config.type!r}; this bench takes diffusion or sdp.")
     if policy.config.type == "sdp" and not policy.config.max_delay:
         modes = ("naive_async",)
-    return [(f"{name} {mode}", mode) for mode in modes]
+    suffix = ", newest frame" if history == "frame" else ""
+    return [(f"{name} {mode}{suffix}", mode) for mode in modes]
 
 
 def evaluate(policy, path: Path, mode: str, delay: int, args: argparse.Namespace) -> dict:
@@ -79,7 +88,7 @@ def evaluate(policy, path: Path, mode: str, delay: int, args: argparse.Namespace
         policy_cfg=policy.config, pretrained_path=str(path), preprocessor_overrides={}
     )
     env_pre, env_post = make_env_pre_post_processors(env_cfg=env_cfg, policy_cfg=policy.config)
-    control = DelayedControl(policy, mode, delay)
+    control = DelayedControl(policy, mode, delay, args.history)
     torch.manual_seed(args.seed)
     start = time.monotonic()
     try:
@@ -166,7 +175,7 @@ def run(args: argparse.Namespace) -> dict:
     cells = [
         (name, row, mode, d)
         for name, policy in policies.items()
-        for row, mode in rows_of(name, policy)
+        for row, mode in rows_of(name, policy, args.history)
         if mode in args.modes
         for d in args.delays
     ]

@@ -21,6 +21,11 @@ Modes, which differ in when a chunk is requested and where its actions go:
 - `delay_aware` for SDP trained with `max_delay`: the same timing, the actions left passed as
   `committed` (`SDPPolicy.predict_action_chunk`), so the chunk is denoised as the one that follows
   them.
+
+The history a chunk is conditioned on is the last `n_obs_steps` frames, one tick apart, or with
+`history="frame"` the newest frame repeated: what LeRobot's RTC engine gives a policy. An RTC engine
+with `--inference.queue_threshold=K` is then SDP's `naive_async` / `delay_aware` at d = K + 1 (the
+call comes as the action of the frame's tick goes out with K left; docs/deployment.md).
 """
 
 from collections import deque
@@ -32,6 +37,7 @@ from lerobot.policies.utils import populate_queues
 from torch import Tensor
 
 MODES = ("blocking", "naive_async", "delay_aware")
+HISTORIES = ("full", "frame")
 
 
 class DelayedControl(PreTrainedPolicy):
@@ -40,12 +46,14 @@ class DelayedControl(PreTrainedPolicy):
     config_class = PreTrainedConfig
     name = "delayed_control"
 
-    def __init__(self, policy: PreTrainedPolicy, mode: str, delay: int):
+    def __init__(self, policy: PreTrainedPolicy, mode: str, delay: int, history: str = "full"):
         super().__init__(policy.config)
-        problem = mode_problem(policy, mode, delay)
+        problem = mode_problem(policy, mode, delay) or (
+            None if history in HISTORIES else f"Unknown history {history!r}; choose from {list(HISTORIES)}."
+        )
         if problem:
             raise ValueError(problem)
-        self.policy, self.mode, self.delay = policy, mode, delay
+        self.policy, self.mode, self.delay, self.frames_only = policy, mode, delay, history == "frame"
         self.chunks = 0  # chunks requested, over all episodes
         self.held_ticks = 0  # ticks the robot had no action for, over all episodes
         self.reset()
@@ -93,7 +101,8 @@ class DelayedControl(PreTrainedPolicy):
         return len(self.queue) <= self.delay
 
     def _request(self) -> None:
-        history = {k: torch.stack(list(q), dim=1) for k, q in self.history.items()}
+        frames = {k: [q[-1]] * len(q) if self.frames_only else list(q) for k, q in self.history.items()}
+        history = {k: torch.stack(f, dim=1) for k, f in frames.items()}
         committed = len(self.queue) if self.mode == "delay_aware" else 0
         kwargs = {"committed": committed} if self.config.type == "sdp" else {}
         chunk = self.policy.predict_action_chunk(history, **kwargs)
