@@ -141,9 +141,7 @@ MUTANTS = [
     M("B16", "buffer.py",
       "schedule.coefficients((k_start - j).clamp(min=0), all_active",
       "schedule.coefficients(k_start - j, all_active",
-      "clamp removed from the reverse plan",
-      equivalent="k_start - j >= 1 for every planned step: a streaming call starts at >= s and runs s "
-      "steps, the full denoise starts at N and runs N"),
+      "clamp removed from the reverse plan: committed slots (level 0) are stepped to negative levels"),
     M("B17", "buffer.py",
       "self.schedule, k_start, self.geometry.steps_per_call, batch_size",
       "self.schedule, k_start, self.geometry.steps_per_call - 1, batch_size",
