@@ -475,6 +475,32 @@ def test_bad_observations_are_refused_on_the_client_and_the_server_goes_on(serve
     assert len(service.sessions) == 2
 
 
+def test_a_prediction_that_fails_leaves_its_timestep_free_for_a_retry(server, tmp_path):
+    """A valid observation whose prediction fails (the model raises) is not counted as predicted: the
+    same timestep sent again, not must-go, is served (LeRobot's server skips predicted timesteps)."""
+    import contextlib
+
+    import grpc
+
+    service, address = server
+    client = StubClient(address)
+    client.setup(tmp_path, save_tiny_policy(tmp_path / "policy"))
+    (session,) = service.sessions.values()
+    predict, calls = session.policy.predict_action_chunk, []
+
+    def fails_once(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 1:
+            raise RuntimeError("the model failed")
+        return predict(*args, **kwargs)
+
+    session.policy.predict_action_chunk = fails_once
+    with contextlib.suppress(grpc.RpcError):  # refused with the error, or no actions: either way
+        assert client.act(raw_observation(), 0) == []
+    actions = client.act(raw_observation(50.0), 0, must_go=False)  # a new frame at that timestep
+    assert len(calls) == 2 and len(actions) == TB and actions[0].get_timestep() == 0
+
+
 def test_a_session_busy_in_a_long_call_is_not_dropped_as_idle(server_mod):
     """A chunk slower than --session_timeout_s (a loaded machine) keeps its session: only sessions
     with no call running are idle."""
