@@ -199,9 +199,9 @@ def markdown(rows: list[dict]) -> str:
 
 def run(args: argparse.Namespace) -> None:
     torch.set_num_threads(args.num_threads)
-    rows = profile(args)
-    report = {"num_threads": args.num_threads, "config_path": list(map(str, configs(args))), "rows": rows}
-    if len(configs(args)) == 1 and {"sdp", "diffusion"} <= {r["policy"] for r in rows}:
+    rows, paths = profile(args), configs(args)
+    report = {"num_threads": args.num_threads, "config_path": list(map(str, paths)), "rows": rows}
+    if len(paths) == 1 and {"sdp", "diffusion"} <= {r["policy"] for r in rows}:
         by = {r["policy"]: r for r in rows}
         report["sdp_over_dp_model_time"] = by["sdp"]["model_ms"] / by["diffusion"]["model_ms"]
     args.output_dir.mkdir(parents=True, exist_ok=True)
