@@ -68,9 +68,21 @@ def trained_steps(train_dir: Path) -> int:
     return json.loads(state.read_text())["step"] if state.exists() else 0
 
 
-def train(train_dir: Path, args: list[str], steps: int, log: Path, echo: bool = True) -> Path:
-    """`lerobot-train ARGS --steps=STEPS --output_dir=TRAIN_DIR`, resumed or skipped when a checkpoint
-    exists. Returns the final pretrained_model directory. `echo=False`: the output goes to `log` only."""
+def train_command(processes: int = 1) -> list[str]:
+    """`lerobot-train`, or with several processes the same script under torchrun (data parallel on
+    one machine; `--standalone` picks a free port, so that two runs can share a machine)."""
+    if processes == 1:
+        return [lerobot_bin("lerobot-train")]
+    launch = [lerobot_bin("torchrun"), "--standalone", f"--nproc_per_node={processes}"]
+    return [*launch, "-m", "lerobot.scripts.lerobot_train"]
+
+
+def train(
+    train_dir: Path, args: list[str], steps: int, log: Path, echo: bool = True, processes: int = 1
+) -> Path:
+    """`lerobot-train ARGS --steps=STEPS --output_dir=TRAIN_DIR` on `processes` processes, resumed or
+    skipped when a checkpoint exists. Returns the final pretrained_model directory. `echo=False`:
+    the output goes to `log` only."""
     model_dir = last_checkpoint(train_dir) / "pretrained_model"
     done = trained_steps(train_dir)
     if done >= steps:
@@ -78,15 +90,11 @@ def train(train_dir: Path, args: list[str], steps: int, log: Path, echo: bool = 
         return model_dir
     if done > 0:
         print(f"[train] {train_dir}: resuming at step {done}/{steps}", flush=True)
-        cmd = [
-            lerobot_bin("lerobot-train"),
-            f"--config_path={model_dir / 'train_config.json'}",
-            "--resume=true",
-        ]
+        cmd = [*train_command(processes), f"--config_path={model_dir / 'train_config.json'}", "--resume=true"]
     elif train_dir.exists():
         raise CLIError(f"{train_dir} exists but holds no checkpoint: move it away or delete it, then rerun.")
     else:
-        cmd = [lerobot_bin("lerobot-train"), *args, f"--steps={steps}", f"--output_dir={train_dir}"]
+        cmd = [*train_command(processes), *args, f"--steps={steps}", f"--output_dir={train_dir}"]
     run_logged(cmd, log, echo)
     return model_dir
 

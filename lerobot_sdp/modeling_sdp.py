@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as F  # noqa: N812
 from lerobot.policies.diffusion.modeling_diffusion import DiffusionModel
 from lerobot.policies.pretrained import PreTrainedPolicy
-from lerobot.policies.utils import populate_queues
+from lerobot.policies.utils import get_dtype_from_parameters, populate_queues
 from lerobot.processor import NormalizerProcessorStep, TransitionKey, UnnormalizerProcessorStep
 from lerobot.processor.converters import create_transition
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
@@ -35,6 +35,7 @@ from .buffer import (
     stream_step,
 )
 from .configuration_sdp import SDPConfig
+from .data_parallel import rank_generator
 from .ema import ema_decay, ema_update
 from .model_card import add_introduction
 from .noise_schemes import sample_delays, sample_levels
@@ -48,13 +49,14 @@ from .observations import (
     stack_cameras,
 )
 from .rtc import committed_under_rtc, engine_result, rest_of_last_chunk
-from .schedule import PerSlotSchedule, StepCoefficients
+from .schedule import PerSlotSchedule, StepCoefficients, gaussian_like
 from .unet import make_variable_noise, plan_embedding_cache
 from .warm_start import WarmStartReport, merged_stats, warm_start
 
 # Set while `SDPPolicy.from_pretrained` builds the policy: the checkpoint's weights replace the warm
 # start's, and the Diffusion Policy checkpoint it named may no longer be reachable.
 _LOADING_CHECKPOINT: ContextVar[bool] = ContextVar("sdp_loading_checkpoint", default=False)
+_UNSET = object()  # the training noise stream is chosen at the first training step
 
 
 class SDPModel(DiffusionModel):
@@ -102,7 +104,13 @@ class SDPModel(DiffusionModel):
         return torch.zeros(shape, device=state.device, dtype=state.dtype)
 
     def denoiser(self, global_cond: Tensor) -> Denoiser:
-        return lambda sample, timesteps: self.unet(sample, timesteps, global_cond=global_cond)
+        """The U-Net at per-slot timesteps, its output in the sample's dtype: under autocast the
+        network runs in bf16 / fp16 while the schedule maths (x0, clipping, the step) stays float32."""
+
+        def denoise(sample: Tensor, timesteps: Tensor) -> Tensor:
+            return self.unet(sample, timesteps, global_cond=global_cond).to(sample.dtype)
+
+        return denoise
 
     def cache_step_embeddings(self, plan: list[StepCoefficients]) -> None:
         """Let the step encoder keep the embeddings of this streaming plan (`unet.PlanEmbeddingCache`)."""
@@ -167,7 +175,13 @@ class SDPModel(DiffusionModel):
         sample = (
             noise
             if noise is not None
-            else torch.randn(shape, generator=generator, device=global_cond.device, dtype=global_cond.dtype)
+            # the weights' dtype, as LeRobot's DP: under autocast the conditioning may be bf16
+            else torch.randn(
+                shape,
+                generator=generator,
+                device=global_cond.device,
+                dtype=get_dtype_from_parameters(self.unet),
+            )
         )
         n = self.num_inference_steps
         k_start = torch.full((self.geometry.horizon,), n, device=sample.device)
@@ -175,8 +189,9 @@ class SDPModel(DiffusionModel):
         noise = step_noise(plan, sample, generator)
         return run_reverse_steps(self.schedule, self.denoiser(global_cond), sample, plan, noise)
 
-    def compute_loss(self, batch: dict[str, Tensor]) -> Tensor:
-        """Paper Eq. 5: MSE between the noise (or clean actions) and the prediction, levels per slot."""
+    def compute_loss(self, batch: dict[str, Tensor], generator: torch.Generator | None = None) -> Tensor:
+        """Paper Eq. 5: MSE between the noise (or clean actions) and the prediction, levels per slot.
+        Every random draw (levels, delays, noise) comes from ``generator``, the global RNG when None."""
         trajectory = batch[ACTION]
         if trajectory.shape[1] != self.geometry.horizon:
             raise ValueError(
@@ -184,15 +199,18 @@ class SDPModel(DiffusionModel):
                 f"{self.geometry.horizon}: build the dataset with this config's action_delta_indices."
             )
         global_cond = self.global_conditioning(batch)
-        levels = sample_levels(self.config.noise_schemes, trajectory.shape[0], self.geometry, self.schedule)
-        levels, committed = sample_delays(levels, self.geometry)
-        eps = torch.randn_like(trajectory)
+        cfg = self.config
+        levels = sample_levels(
+            cfg.noise_schemes, trajectory.shape[0], self.geometry, self.schedule, generator
+        )
+        levels, committed = sample_delays(levels, self.geometry, generator)
+        eps = gaussian_like(trajectory, generator)
         # committed slots (timestep -1) come out clean: abar is 1 there (DDPM, and DDIM's set_alpha_to_one)
-        pred = self.unet(self.schedule.add_noise(trajectory, eps, levels), levels, global_cond=global_cond)
-        target = eps if self.config.prediction_type == "epsilon" else trajectory
+        pred = self.denoiser(global_cond)(self.schedule.add_noise(trajectory, eps, levels), levels)
+        target = eps if cfg.prediction_type == "epsilon" else trajectory
         loss = F.mse_loss(pred, target, reduction="none")
         mask = None if committed is None else ~committed.unsqueeze(-1)  # committed slots are inputs only
-        if self.config.do_mask_loss_for_padding and "action_is_pad" in batch:
+        if cfg.do_mask_loss_for_padding and "action_is_pad" in batch:
             pad = (~batch["action_is_pad"]).unsqueeze(-1)
             mask = pad if mask is None else mask & pad
         if mask is None:
@@ -249,6 +267,7 @@ class SDPPolicy(PreTrainedPolicy):
         # Plain attribute, not a registered buffer: streaming state never enters a checkpoint.
         self._buffer = StreamingBuffer(self.geometry, self.model.schedule)
         self._queues: dict[str, deque] = {}
+        self._noise_stream: torch.Generator | object | None = _UNSET
         self.reset()
 
     def get_optim_params(self) -> dict:
@@ -424,7 +443,14 @@ class SDPPolicy(PreTrainedPolicy):
             for key in self.config.image_features:
                 if self.config.n_obs_steps == 1 and batch[key].ndim == 4:
                     batch[key] = batch[key].unsqueeze(1)
-        return self.model.compute_loss(stack_cameras(self.config, batch)), None
+        return self.model.compute_loss(stack_cameras(self.config, batch), self._training_generator()), None
+
+    def _training_generator(self) -> torch.Generator | None:
+        """This rank's stream of training noise under data parallelism, the global RNG (None) in one
+        process (`data_parallel.rank_generator`); chosen at the first training step."""
+        if self._noise_stream is _UNSET:
+            self._noise_stream = rank_generator(self.ema_step.device)
+        return self._noise_stream
 
     def generate_model_card(self, *args, **kwargs):
         """LeRobot's card, introduced as SDP (LeRobot's template only knows its built-in policies)."""

@@ -16,6 +16,8 @@ clean inputs, and every later slot takes the level drawn for the slot d places b
 A mixture draws one scheme *per sample* with the given weights (the authors drew one per batch;
 per sample gives every batch the mixture's proportions). All levels are training timesteps, drawn
 on the device the schedule's tables live on (the model's): no host round trip per training step.
+Every draw takes an optional ``generator`` (the global RNG when None): under data parallelism
+each rank passes its own (`data_parallel.rank_generator`).
 """
 
 import itertools
@@ -50,26 +52,52 @@ class NoiseSchemeWeights:
         return {f.name: float(getattr(self, f.name)) for f in fields(self)}
 
 
-def constant_levels(batch_size: int, geometry: ChunkGeometry, schedule: PerSlotSchedule) -> Tensor:
-    t = torch.randint(schedule.num_train_timesteps, (batch_size, 1), device=device_of(schedule))
+def constant_levels(
+    batch_size: int,
+    geometry: ChunkGeometry,
+    schedule: PerSlotSchedule,
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    t = torch.randint(
+        schedule.num_train_timesteps, (batch_size, 1), device=device_of(schedule), generator=generator
+    )
     return t.expand(batch_size, geometry.horizon)
 
 
-def linear_levels(batch_size: int, geometry: ChunkGeometry, schedule: PerSlotSchedule) -> Tensor:
+def linear_levels(
+    batch_size: int,
+    geometry: ChunkGeometry,
+    schedule: PerSlotSchedule,
+    generator: torch.Generator | None = None,
+) -> Tensor:
     ramp = torch.linspace(0, schedule.num_train_timesteps - 1, geometry.horizon, device=device_of(schedule))
     return ramp.round().long().expand(batch_size, geometry.horizon)
 
 
-def independent_levels(batch_size: int, geometry: ChunkGeometry, schedule: PerSlotSchedule) -> Tensor:
+def independent_levels(
+    batch_size: int,
+    geometry: ChunkGeometry,
+    schedule: PerSlotSchedule,
+    generator: torch.Generator | None = None,
+) -> Tensor:
     return torch.randint(
-        schedule.num_train_timesteps, (batch_size, geometry.horizon), device=device_of(schedule)
+        schedule.num_train_timesteps,
+        (batch_size, geometry.horizon),
+        device=device_of(schedule),
+        generator=generator,
     )
 
 
-def chunkwise_levels(batch_size: int, geometry: ChunkGeometry, schedule: PerSlotSchedule) -> Tensor:
+def chunkwise_levels(
+    batch_size: int,
+    geometry: ChunkGeometry,
+    schedule: PerSlotSchedule,
+    generator: torch.Generator | None = None,
+) -> Tensor:
     s = geometry.steps_per_call
     device = device_of(schedule)
-    offset = torch.randint(1, s + 1, (batch_size, 1), device=device)  # shared by all chunks of a sample
+    # one offset shared by all chunks of a sample
+    offset = torch.randint(1, s + 1, (batch_size, 1), device=device, generator=generator)
     k = geometry.slot_chunk_on(device).unsqueeze(0) * s + offset
     return schedule.train_timesteps(k)
 
@@ -87,27 +115,36 @@ SCHEMES = {
 
 
 def sample_levels(
-    weights: NoiseSchemeWeights, batch_size: int, geometry: ChunkGeometry, schedule: PerSlotSchedule
+    weights: NoiseSchemeWeights,
+    batch_size: int,
+    geometry: ChunkGeometry,
+    schedule: PerSlotSchedule,
+    generator: torch.Generator | None = None,
 ) -> Tensor:
-    """Training timesteps (B, horizon) from the weighted mixture: one scheme drawn per sample."""
+    """Training timesteps (B, horizon) from the weighted mixture: one scheme drawn per sample. Every
+    draw comes from ``generator`` (the global RNG when None)."""
     w = weights.as_dict()
     active = [name for name in SCHEMES if w[name] > 0]
     device = device_of(schedule)
     # inverse CDF against Python floats: no weights tensor to copy to the device every step
     bounds = list(itertools.accumulate(w[name] for name in active))
-    u = torch.rand(batch_size, device=device) * bounds[-1]
+    u = torch.rand(batch_size, device=device, generator=generator) * bounds[-1]
     choice = torch.zeros(batch_size, dtype=torch.long, device=device)
     for bound in bounds[:-1]:
         choice += u >= bound
-    levels = torch.stack([SCHEMES[name](batch_size, geometry, schedule) for name in active])
+    levels = torch.stack([SCHEMES[name](batch_size, geometry, schedule, generator) for name in active])
     return levels[choice, torch.arange(batch_size, device=device)]
 
 
-def sample_delays(levels: Tensor, geometry: ChunkGeometry) -> tuple[Tensor, Tensor | None]:
+def sample_delays(
+    levels: Tensor, geometry: ChunkGeometry, generator: torch.Generator | None = None
+) -> tuple[Tensor, Tensor | None]:
     """``levels`` (B, T) laid out for one inference delay d ~ U{0..max_delay} per sample, and the
     committed slots (B, T) the loss leaves out. With max_delay = 0: the levels unchanged, no mask and
     no random draw (the paper's training, bit for bit)."""
     if geometry.max_delay == 0:
         return levels, None
-    delay = torch.randint(geometry.max_delay + 1, (levels.shape[0],), device=levels.device)
+    delay = torch.randint(
+        geometry.max_delay + 1, (levels.shape[0],), device=levels.device, generator=generator
+    )
     return geometry.delayed(levels, delay, clean=CLEAN), geometry.committed_mask(delay)

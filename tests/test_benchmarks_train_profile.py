@@ -40,3 +40,29 @@ def test_configs_and_policies_take_their_steps_in_turn(tmp_path, monkeypatch, ca
         assert all(ms >= 0 for ms in r["phase_ms"].values()) and r["phase_ms"]["forward"] > 0
         assert r["step_ms"] == sum(r["phase_ms"].values())
     assert "| sdp (md3) | 36 |" in capsys.readouterr().out
+
+
+def test_bf16_rows_run_the_forward_under_autocast(tmp_path, monkeypatch):
+    import torch
+
+    make_tiny_pusht_dataset(tmp_path / "data", n_episodes=2, length=40)
+    seen, real_build = [], train_profile.build
+
+    def recording_build(*args, **kwargs):
+        c = real_build(*args, **kwargs)
+        forward = c.policy.forward
+        c.policy.forward = lambda batch: (
+            seen.append((c.name, torch.is_autocast_enabled("cpu"))),
+            forward(batch),
+        )[1]
+        return c
+
+    monkeypatch.setattr(train_profile, "build", recording_build)
+    out = tmp_path / "out"
+    cli.main(["train-profile", "--config_path", str(tiny_config(tmp_path / "c.json")), "--policies", "sdp",
+              "--precision", "fp32", "bf16", "--dataset_root", str(tmp_path / "data"),
+              "--repo_id", "local/tiny_pusht", "--steps", "1", "--warmup", "0",
+              "--output_dir", str(out)])  # fmt: skip
+    assert sorted(set(seen)) == [("sdp bf16", True), ("sdp fp32", False)]
+    rows = json.loads((out / "train_profile.json").read_text())["rows"]
+    assert [(r["name"], r["precision"]) for r in rows] == [("sdp fp32", "fp32"), ("sdp bf16", "bf16")]

@@ -23,6 +23,7 @@ LAYERS = {
         "observations",
         "rtc",
         "chunk_cost",
+        "data_parallel",
     ],
     "tasks": ["robots", "pusht", "robomimic", "policy_server", "protocol_pickle"],
     "benchmarks": ["benchmarks"],

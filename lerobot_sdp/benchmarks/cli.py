@@ -10,7 +10,17 @@ from types import ModuleType
 
 from lerobot.utils.utils import init_logging
 
-from . import compiled, delay, deployment, latency, quality, server_load, throughput, train_profile
+from . import (
+    compiled,
+    data_parallel,
+    delay,
+    deployment,
+    latency,
+    quality,
+    server_load,
+    throughput,
+    train_profile,
+)
 
 SUBCOMMANDS: dict[str, ModuleType] = {
     "latency": latency,
@@ -18,6 +28,7 @@ SUBCOMMANDS: dict[str, ModuleType] = {
     "quality": quality,
     "train-profile": train_profile,
     "throughput": throughput,
+    "data-parallel": data_parallel,
     "deployment": deployment,
     "delay": delay,
     "server-load": server_load,

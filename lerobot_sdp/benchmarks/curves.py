@@ -45,6 +45,21 @@ def step_logs(train_log: Path, final_step: int | None = None) -> list[tuple[date
     return marks
 
 
+LOSS = re.compile(r"\bloss:([0-9.eE+-]+) .*?\bsmp/s:([0-9.]+[KM]?)")
+
+
+def loss_logs(train_log: Path, final_step: int) -> list[dict]:
+    """Every step log's exact step, loss (LeRobot's average over the log window, over all ranks) and
+    samples per second (the whole run's, all ranks), in log order."""
+    points = []
+    for line in train_log.read_text(errors="replace").splitlines():
+        if (match := STEP_LOG.search(line)) and (loss := LOSS.search(line)):
+            bar = PROGRESS.search(line)
+            step = final_step - int(bar[2]) + int(bar[1]) if bar else parse_step(match[2])
+            points.append({"step": step, "loss": float(loss[1]), "samples_per_s": parse_step(loss[2])})
+    return points
+
+
 def wall_time_at(marks: list[tuple[datetime, int]], step: int) -> float | None:
     """Training seconds spent to reach `step` (None without two step logs to measure a rate)."""
     intervals = []

@@ -13,6 +13,8 @@ Every policy of every config (`--config_path` takes several, e.g. the same recip
 `max_delay`) is built first, then they take their steps in turn, one step each per round (the order
 reversed every other round), so that a machine whose speed drifts over minutes slows them all alike
 and the ratios between them hold; each row's model time is also given relative to the first row's.
+`--precision fp32 bf16` steps every policy both ways: bf16 runs the forward under autocast, as
+`lerobot-train --policy.use_amp=true` does (accelerate's autocast; bf16 on CPU).
 Output: OUTPUT_DIR/train_profile.json and a Markdown table on stdout.
 """
 
@@ -28,6 +30,7 @@ from .policy_args import add_training_arguments, configs
 from .report import table, write_json
 
 PHASES = ("data", "preprocess", "forward", "backward", "optimizer", "ema")
+AUTOCAST = {"fp32": None, "bf16": torch.bfloat16}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -41,6 +44,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--num_workers", type=int, default=None, help="DataLoader workers (default: the config's)")
     p.add_argument("--batch_size", type=int, default=None, help="default: the config's")
     p.add_argument("--dp_horizon", type=int, default=None, help="default: SDP's horizon")
+    p.add_argument(
+        "--precision",
+        nargs="+",
+        default=["fp32"],
+        choices=list(AUTOCAST),
+        help="bf16: the forward under autocast (`--policy.use_amp=true`); several: every policy each way",
+    )
     p.add_argument("--output_dir", type=Path, default=Path("outputs/benchmarks/train_profile"))
 
 
@@ -88,9 +98,12 @@ class Contender:
     scheduler: object
     batches: object
     timer: Timer
+    precision: str = "fp32"
 
 
-def build(args: argparse.Namespace, config_path: Path, policy_type: str, name: str) -> Contender:
+def build(
+    args: argparse.Namespace, config_path: Path, policy_type: str, name: str, precision: str = "fp32"
+) -> Contender:
     from lerobot.datasets import EpisodeAwareSampler
     from lerobot.datasets.factory import make_dataset
     from lerobot.optim.factory import make_optimizer_and_scheduler
@@ -119,7 +132,10 @@ def build(args: argparse.Namespace, config_path: Path, policy_type: str, name: s
     )
     policy.train()
     timer = Timer({phase: [] for phase in PHASES})
-    return Contender(name, config_path, cfg, policy, preprocessor, optimizer, scheduler, iter(loader), timer)
+    batches = iter(loader)
+    return Contender(
+        name, config_path, cfg, policy, preprocessor, optimizer, scheduler, batches, timer, precision
+    )
 
 
 def take_step(c: Contender) -> None:
@@ -129,7 +145,10 @@ def take_step(c: Contender) -> None:
     t = c.timer("data", t)
     batch = c.preprocessor(batch)
     t = c.timer("preprocess", t)
-    loss, _ = c.policy.forward(batch)
+    dtype = AUTOCAST[c.precision]
+    device = next(c.policy.parameters()).device.type
+    with torch.autocast(device, dtype=dtype, enabled=dtype is not None):
+        loss, _ = c.policy.forward(batch)
     t = c.timer("forward", t)
     loss.backward()
     t = c.timer("backward", t)
@@ -152,6 +171,7 @@ def summary(c: Contender) -> dict:
         "policy": c.cfg.policy.type,
         "config_path": str(c.config_path),
         "horizon": c.cfg.policy.horizon,
+        "precision": c.precision,
         "batch_size": c.cfg.batch_size,
         "num_workers": c.cfg.num_workers,
         "phase_ms": ms,
@@ -161,13 +181,26 @@ def summary(c: Contender) -> dict:
     }
 
 
+def contender_name(policy: str, path: Path, precision: str, n_paths: int, n_precisions: int) -> str:
+    """The policy, with its config when several are compared and its precision when several are."""
+    name = f"{policy} ({path.stem})" if n_paths > 1 else policy
+    return f"{name} {precision}" if n_precisions > 1 else name
+
+
 def profile(args: argparse.Namespace) -> list[dict]:
     """Every contender, stepped in turn (module docstring); one summary row each."""
-    paths = configs(args)
+    paths, precisions = configs(args), args.precision
     contenders = [
-        build(args, path, policy, f"{policy} ({path.stem})" if len(paths) > 1 else policy)
+        build(
+            args,
+            path,
+            policy,
+            contender_name(policy, path, precision, len(paths), len(precisions)),
+            precision,
+        )
         for path in paths
         for policy in args.policies
+        for precision in precisions
     ]
     for step in range(args.warmup + args.steps):
         if step == args.warmup:
@@ -201,7 +234,7 @@ def run(args: argparse.Namespace) -> None:
     torch.set_num_threads(args.num_threads)
     rows, paths = profile(args), configs(args)
     report = {"num_threads": args.num_threads, "config_path": list(map(str, paths)), "rows": rows}
-    if len(paths) == 1 and {"sdp", "diffusion"} <= {r["policy"] for r in rows}:
+    if len(paths) == 1 and len(args.precision) == 1 and {"sdp", "diffusion"} <= {r["policy"] for r in rows}:
         by = {r["policy"]: r for r in rows}
         report["sdp_over_dp_model_time"] = by["sdp"]["model_ms"] / by["diffusion"]["model_ms"]
     args.output_dir.mkdir(parents=True, exist_ok=True)
