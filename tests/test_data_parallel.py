@@ -36,6 +36,7 @@ sys.path.insert(0, sys.argv[1])
 from sdp_test_utils import tiny_config
 from test_data_parallel import training_batch
 from lerobot_sdp import SDPPolicy
+from lerobot_sdp.noise_schemes import NoiseSchemeWeights
 import lerobot_sdp.modeling_sdp as modeling
 
 draws = {"levels": [], "delays": [], "noise": [], "loss": []}
@@ -51,7 +52,7 @@ modeling.gaussian_like = recorded("noise", modeling.gaussian_like, lambda out: o
 
 dist.init_process_group("gloo")
 torch.manual_seed(0)
-cfg = tiny_config(max_delay=2)
+cfg = tiny_config(max_delay=2, noise_schemes=NoiseSchemeWeights(constant=0.5, chunkwise=0.5))
 policy = SDPPolicy(cfg).train()
 batch = training_batch(cfg)
 draws["loss"] = [float(policy.forward(batch)[0]) for _ in range(3)]
@@ -79,6 +80,9 @@ def test_every_rank_draws_its_own_training_noise_reproducibly(tmp_path):
     for name in ("levels", "delays", "noise"):  # the same seed, weights and batch on both ranks
         assert len(first[0][name]) == 3 and first[0][name] != first[1][name], name
     assert first[0]["loss"] != first[1]["loss"]
+    # which scheme each sample drew (constant: one level for every slot) differs too
+    schemes = {r: [[len(set(sample)) == 1 for sample in step] for step in first[r]["levels"]] for r in (0, 1)}
+    assert schemes[0] != schemes[1]
     assert draws_on_two_ranks(tmp_path, 1) == first  # and the same command draws the same noise
 
 
@@ -127,6 +131,8 @@ def test_two_processes_train_save_once_and_average_once_per_step(tmp_path):
         "--policy.num_inference_steps=10",
         "--policy.device=cpu",
         "--policy.push_to_hub=false",
+        # per-position FiLM here; the default flattened step encoder runs in `lerobot-sdp-bench data-parallel`
+        "--policy.step_conditioning=film_per_slot",
         # a large step from the first update, so that the weights (and a wrong average) move visibly
         "--policy.optimizer_lr=0.01",
         "--policy.scheduler_warmup_steps=0",
