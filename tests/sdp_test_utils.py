@@ -1,5 +1,15 @@
 """Small configs and observations shared by the tests."""
 
+# lerobot-train's flags for the small SDP of `tiny_config` (state features come from the dataset)
+TINY_POLICY_FLAGS = [
+    "--policy.type=sdp",
+    "--policy.down_dims=[16,32]",
+    "--policy.diffusion_step_embed_dim=16",
+    "--policy.n_action_steps=4",
+    "--policy.num_inference_steps=10",
+    "--policy.device=cpu",
+]
+
 
 def tiny_config(image: bool = False, **overrides):
     """A small SDP config with Push-T shaped features (state + keypoints, or state + 96 px camera)."""

@@ -11,17 +11,12 @@ import sys
 from pathlib import Path
 
 import pytest
-from sdp_test_utils import make_tiny_pusht_dataset
+from sdp_test_utils import TINY_POLICY_FLAGS, make_tiny_pusht_dataset
 
 BIN = Path(sys.executable).parent
 ENV = {**os.environ, "HF_HUB_OFFLINE": "1", "WANDB_MODE": "disabled", "MUJOCO_GL": "egl"}
 TINY_POLICY = [
-    "--policy.type=sdp",
-    "--policy.down_dims=[16,32]",
-    "--policy.diffusion_step_embed_dim=16",
-    "--policy.n_action_steps=4",
-    "--policy.num_inference_steps=10",
-    "--policy.device=cpu",
+    *TINY_POLICY_FLAGS,
     "--policy.noise_schemes.chunkwise=0.5",
     "--policy.noise_schemes.independent=0.3",
 ]

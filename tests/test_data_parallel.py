@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from sdp_test_utils import make_tiny_pusht_dataset, tiny_config
+from sdp_test_utils import TINY_POLICY_FLAGS, make_tiny_pusht_dataset, tiny_config
 
 from lerobot_sdp import SDPPolicy
 from lerobot_sdp.data_parallel import rank_generator, world
@@ -124,12 +124,7 @@ def test_two_processes_train_save_once_and_average_once_per_step(tmp_path):
         "--num_workers=0",
         "--wandb.enable=false",
         f"--output_dir={tmp_path / 'train'}",
-        "--policy.type=sdp",
-        "--policy.down_dims=[16,32]",
-        "--policy.diffusion_step_embed_dim=16",
-        "--policy.n_action_steps=4",
-        "--policy.num_inference_steps=10",
-        "--policy.device=cpu",
+        *TINY_POLICY_FLAGS,
         "--policy.push_to_hub=false",
         # per-position FiLM here; the default flattened step encoder runs in `lerobot-sdp-bench data-parallel`
         "--policy.step_conditioning=film_per_slot",
