@@ -350,7 +350,7 @@ def test_delay_training_feeds_committed_slots_clean_and_leaves_them_out_of_the_l
     monkeypatch.setattr(
         modeling,
         "sample_delays",
-        lambda levels, geometry: (
+        lambda levels, geometry, generator=None: (
             geometry.delayed(levels, delays, clean=-1),
             geometry.committed_mask(delays),
         ),
