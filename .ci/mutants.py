@@ -8,8 +8,9 @@
 
 Each mutant is one textual change (file, exact original text, replacement) to buffer.py,
 schedule.py, geometry.py, noise_schemes.py, the step-embedding cache of unet.py, the primer,
-NaN-guard and inference-delay lines of modeling_sdp.py, the policy server's plan and timing, the
-delay bench's virtual clock and pusht_sim's wall clock. The script
+NaN-guard, inference-delay and autocast lines of modeling_sdp.py, the per-rank noise streams of
+data_parallel.py, the policy server's plan and timing, the delay bench's virtual clock and
+pusht_sim's wall clock. The script
 copies the package and its tests to a temporary directory (the working tree is never modified, so
 an interrupted run leaves nothing behind), checks that the unmutated copy passes, then applies one
 mutant at a time to the copy and runs the core tests with ``-x -q``. A mutant is *killed* when
