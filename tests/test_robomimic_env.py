@@ -133,12 +133,13 @@ def test_bad_action_shape(lift_env):
 def test_success_from_the_task_check():
     """The scripted demonstrator lifts the cube: the episode terminates with is_success."""
     pytest.importorskip("robosuite", reason=robosuite_missing)
+    from lerobot_sdp.robomimic.demonstrators import LiftDemonstrator
     from lerobot_sdp.robomimic.env import RobomimicEnv
-    from lerobot_sdp.robomimic.scripted_lift import LiftDemonstrator
 
     env = RobomimicEnv("Lift")
     demonstrator = LiftDemonstrator(np.random.default_rng(0))
     env.reset(seed=100_000)
+    demonstrator.reset(env.sim_env)
     for _ in range(200):
         _, reward, terminated, truncated, info = env.step(demonstrator.act(env.raw_observation))
         if terminated or truncated:

@@ -1,6 +1,6 @@
 """Scripted Lift demonstrations -> LeRobotDataset -> 2 SDP training steps -> 1 evaluation episode.
 
-Everything runs through the installed console commands (lerobot-sdp-record-lift, lerobot-train,
+Everything runs through the installed console commands (lerobot-sdp-record-scripted, lerobot-train,
 lerobot-eval) with no extra flags, so it also checks that `--env.type=robomimic` is registered by
 the plugin import alone.
 """
@@ -45,7 +45,7 @@ def test_demonstrations_train_and_evaluate(tmp_path):
     data = tmp_path / "lift_demos"
     out = run(
         [
-            str(BIN / "lerobot-sdp-record-lift"),
+            str(BIN / "lerobot-sdp-record-scripted"),
             "--num_episodes",
             "3",
             "--output_dir",

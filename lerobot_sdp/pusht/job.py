@@ -7,237 +7,38 @@
 4. print pc_success, avg_max_reward, the denoiser calls and latency per chunk, the checkpoint and
    where lerobot-eval wrote the rollout videos; OUTPUT_DIR/summary.json has all of it.
 
-Stages that already finished are reused with --resume (an interrupted training run resumes from
-its last checkpoint); an existing output directory is never overwritten without --overwrite.
-Each stage's wall time is kept in OUTPUT_DIR/timings.json as soon as it finishes (or stops), so a
-resumed run reports the time its reused stages took in the session that ran them.
+Stages that already finished are reused with --resume; see `lerobot_sdp.main_job`.
 """
 
 import argparse
-import json
-import shutil
-import sys
-import time
-from collections.abc import Iterator
-from contextlib import contextmanager
-from datetime import datetime
 from pathlib import Path
 
-import draccus
-from lerobot.configs.policies import PreTrainedConfig
-
-from .. import shipped_configs
-from ..chunk_cost import stream_cost
-from ..lerobot_cli import CLIError, eval_info, evaluate, train, trained_steps
+from ..main_job import StageTimings, job_parser, run_main, train_evaluate_measure
 from .data import NoPushTDataError, converted, keypoints_dataset_args
 from .evaluation import EVAL_SEED, OBS_TYPE, pusht_eval_args
 
-STAGES = ("data", "train", "eval", "measure")
-
 
 def parse_args(argv=None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--output_dir", type=Path, default=Path("outputs/pusht_main"))
-    p.add_argument(
-        "--config_path",
-        type=shipped_configs.config_argument,
-        default="pusht_state_cpu",
-        help="a config file, or the name of a shipped one (python -m lerobot_sdp.shipped_configs)",
-    )
+    p = job_parser(__doc__, "outputs/pusht_main", "pusht_state_cpu")
     p.add_argument(
         "--zarr",
         type=Path,
         default=None,
         help="pusht_cchi_v7_replay.zarr (default: $SDP_PUSHT_ZARR, then ../shared/data/pusht/)",
     )
-    p.add_argument("--eval_episodes", type=int, default=50)
-    p.add_argument("--steps", type=int, default=None, help="override the config's training steps")
-    p.add_argument("--device", default="cpu")
-    group = p.add_mutually_exclusive_group()
-    group.add_argument("--resume", action="store_true", help="reuse finished stages, resume training")
-    group.add_argument("--overwrite", action="store_true", help="delete --output_dir and start over")
     return p.parse_args(argv)
 
 
-def prepare_output_dir(args: argparse.Namespace) -> None:
-    if args.output_dir.exists() and any(args.output_dir.iterdir()):
-        if args.overwrite:
-            shutil.rmtree(args.output_dir)
-        elif not args.resume:
-            sys.exit(
-                f"error: {args.output_dir} already exists. Pass --resume to reuse finished stages "
-                "(and resume training), --overwrite to delete it, or another --output_dir."
-            )
-    args.output_dir.mkdir(parents=True, exist_ok=True)
-
-
-class StageTimings:
-    """Wall time of each stage of one output directory, kept in OUTPUT_DIR/timings.json across sessions.
-
-    A stage's seconds are the time spent doing its work, summed over the sessions that did some: a
-    session that finds the stage finished (reused) adds nothing, one that resumes it (training from its
-    last checkpoint) adds its own time, and a stage that stops (error, Ctrl-C) records the time it had
-    spent. `measure` (the latency per chunk) is measured again in every session: its time is replaced.
-    Each session lists what it did per stage: ran, reused, resumed (after an interruption), ran again
-    (after a finished run, e.g. more --steps), interrupted.
-    """
-
-    FILE = "timings.json"
-
-    def __init__(self, output_dir: Path):
-        self.path = output_dir / self.FILE
-        saved = json.loads(self.path.read_text()) if self.path.exists() else {}
-        self.stage_s: dict[str, float] = saved.get("stage_s", {})
-        self.sessions: list[dict] = saved.get("sessions", [])
-        self.session: dict = {"started": datetime.now().isoformat(timespec="seconds"), "stages": {}}
-        self.sessions.append(self.session)
-        self._start = time.monotonic()
-
-    @property
-    def resumed(self) -> bool:
-        """Whether this run spans more than one session (it was resumed)."""
-        return len(self.sessions) > 1
-
-    @contextmanager
-    def stage(self, name: str, reused: bool = False, replace: bool = False) -> Iterator[None]:
-        if reused:
-            try:
-                yield
-            finally:
-                self.session["stages"][name] = "reused"
-                self.save()
-            return
-        before = 0.0 if replace else self.stage_s.get(name, 0.0)
-        earlier = [s["stages"][name] for s in self.sessions[:-1] if name in s["stages"]]
-        if replace or not earlier:
-            status = "ran"
-        else:
-            status = "resumed" if earlier[-1] == "interrupted" else "ran again"
-        start = time.monotonic()
-        try:
-            yield
-        except BaseException:
-            status = "interrupted"
-            raise
-        finally:
-            self.stage_s[name] = round(before + time.monotonic() - start, 1)
-            self.session["stages"][name] = status
-            self.save()
-
-    def save(self) -> None:
-        self.session["wall_time_s"] = round(time.monotonic() - self._start, 1)
-        self.path.write_text(json.dumps({"stage_s": self.stage_s, "sessions": self.sessions}, indent=2))
-
-    def summary(self) -> dict:
-        stages = {name: self.stage_s[name] for name in STAGES if name in self.stage_s}
-        return {
-            "wall_time_s": round(sum(stages.values()), 1),
-            "train_and_data_time_s": round(stages.get("data", 0.0) + stages.get("train", 0.0), 1),
-            "stage_time_s": stages,
-            "session_wall_time_s": round(time.monotonic() - self._start, 1),
-            "resumed": self.resumed,
-            "sessions": self.sessions,
-        }
-
-
-def sdp_geometry(config: dict, device: str) -> str | None:
-    """The SDP geometry line of a `lerobot-train` JSON config (None for another policy type); the
-    config is built exactly as lerobot-train builds it, so an invalid one fails here, before training."""
-    policy = config.get("policy", {})
-    if policy.get("type") != "sdp":
-        return None
-    g = draccus.decode(PreTrainedConfig, {**policy, "device": device}).geometry
-    return f"{g.describe()} (N = {g.num_inference_steps}, h = {g.n_chunks})."
-
-
-def rollout_videos(eval_dir: Path) -> list[Path]:
-    """The episode videos lerobot-eval rendered (its first 10 episodes)."""
-    return sorted((eval_dir / "videos").rglob("*.mp4"))
-
-
 def run_job(args: argparse.Namespace, timings: StageTimings) -> dict:
-    config = json.loads(args.config_path.read_text())
-    steps = args.steps or config["steps"]
-    geometry = sdp_geometry(config, args.device)
-    if geometry:
-        print(f"[config] {args.config_path}: {geometry}", flush=True)
-    data_dir, train_dir, eval_dir = (args.output_dir / name for name in ("data", "train", "eval"))
-    logs = args.output_dir / "logs"
-
+    data_dir = args.output_dir / "data"
     with timings.stage("data", reused=converted(data_dir)):
         dataset_args = keypoints_dataset_args(args.zarr, data_dir)
-    train_args = [
-        f"--config_path={args.config_path}",
-        *dataset_args,
-        f"--save_freq={min(steps, 1000)}",
-        f"--policy.device={args.device}",
-        "--job_name=sdp_pusht_main",
-    ]
-    with timings.stage("train", reused=trained_steps(train_dir) >= steps):
-        model_dir = train(train_dir, train_args, steps, logs / "train.log")
     eval_args = pusht_eval_args(OBS_TYPE, args.eval_episodes, EVAL_SEED, args.device)
-    with timings.stage("eval", reused=eval_info(eval_dir).exists()):
-        metrics = evaluate(model_dir, eval_dir, eval_args, logs / "eval.log")
-    videos = rollout_videos(eval_dir)
-    print(f"[eval] {len(videos)} rollout videos in {eval_dir / 'videos'}", flush=True)
-    with timings.stage("measure", replace=True):
-        cost = stream_cost(model_dir)
-    policy = json.loads((model_dir / "config.json").read_text())
-    return {
-        "pc_success": metrics["pc_success"],
-        "avg_max_reward": metrics["avg_max_reward"],
-        "avg_sum_reward": metrics["avg_sum_reward"],
-        "n_episodes": metrics["n_episodes"],
-        **cost,
-        "latency_device": "cpu",
-        "num_inference_steps": policy["num_inference_steps"] or policy["num_train_timesteps"],
-        "n_chunks": policy["n_chunks"],
-        "model_dir": str(model_dir),
-        "videos": str(eval_dir / "videos"),
-        "video_files": [str(v) for v in videos],
-        **timings.summary(),
-    }
-
-
-def print_summary(summary: dict, output_dir: Path) -> None:
-    print("\n=== SDP on Push-T (keypoints) ===")
-    print(f"pc_success          {summary['pc_success']:.1f} %  over {summary['n_episodes']} episodes")
-    print(f"avg_max_reward      {summary['avg_max_reward']:.3f}")
-    print(
-        f"denoiser calls      {summary['denoiser_calls_per_chunk']:g} per chunk (counted; N = "
-        f"{summary['num_inference_steps']}, h = {summary['n_chunks']}; Diffusion Policy: N)"
-    )
-    print(
-        f"latency             {summary['latency_per_chunk_ms']:.1f} ms per chunk "
-        f"(batch 1, {summary.get('latency_device', 'cpu')}, after the first chunk)"
-    )
-    print(f"checkpoint          {summary['model_dir']}")
-    n_videos = len(summary.get("video_files", []))
-    print(f"videos              {summary['videos']}  ({n_videos} episodes rendered as .mp4)")
-    stages = ", ".join(f"{name} {s:.0f} s" for name, s in summary["stage_time_s"].items())
-    resumed = ""
-    if summary["resumed"]:
-        this = summary["sessions"][-1]["stages"]
-        resumed = f"; resumed in session {len(summary['sessions'])}: " + ", ".join(
-            f"{name} {status}" for name, status in this.items()
-        )
-    print(f"time                {summary['wall_time_s']:.0f} s in all ({stages}{resumed})")
-    print(f"summary             {output_dir / 'summary.json'}")
+    return train_evaluate_measure(args, timings, dataset_args, eval_args, "sdp_pusht_main")
 
 
 def main(argv=None) -> None:
-    args = parse_args(argv)
-    if not args.config_path.exists():
-        sys.exit(f"error: config {args.config_path} not found; pass --config_path (see the repo's configs/).")
-    prepare_output_dir(args)
-    try:
-        summary = run_job(args, StageTimings(args.output_dir))
-    except (CLIError, NoPushTDataError) as e:
-        sys.exit(f"error: {e}")
-    except draccus.utils.DraccusException as e:
-        sys.exit(f"error: {args.config_path}: invalid policy config: {e}")
-    (args.output_dir / "summary.json").write_text(json.dumps(summary, indent=2))
-    print_summary(summary, args.output_dir)
+    run_main(parse_args(argv), run_job, "SDP on Push-T (keypoints)", (NoPushTDataError,))
 
 
 if __name__ == "__main__":

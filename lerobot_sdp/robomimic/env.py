@@ -110,6 +110,12 @@ class RobomimicEnv(gym.Env):
         return spaces.Dict(space)
 
     @property
+    def sim_env(self):
+        """The robosuite environment itself (task internals such as target placements), for scripted
+        demonstrators."""
+        return self._env
+
+    @property
     def raw_observation(self) -> dict:
         """robosuite's latest observation dict (all keys, e.g. "cube_pos"), for scripted demonstrators."""
         if self._raw_obs is None:

@@ -1,0 +1,69 @@
+"""The robomimic main job (`lerobot-sdp-robomimic`): scripted demonstrations -> lerobot-train ->
+lerobot-eval -> summary, end to end on a tiny budget, then `--resume` reusing every stage."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip(
+    "robosuite", reason="robosuite is not installed: pip install 'lerobot_policy_sdp[robomimic]'"
+)
+
+from lerobot_sdp import shipped_configs
+from lerobot_sdp.robomimic import job
+
+# The job's own evaluation flags, before a test shortens the episodes.
+JOB_EVAL_ARGS = job.eval_args
+
+
+def test_each_task_trains_from_its_shipped_config():
+    assert job.parse_args([]).config_path == shipped_configs.path("robomimic_can_lowdim_cpu")
+    assert job.parse_args(["--task", "Lift"]).config_path == shipped_configs.path("robomimic_lift_lowdim_cpu")
+    for task, name in job.CONFIGS.items():
+        config = json.loads(shipped_configs.path(name).read_text())
+        assert config["env"]["task"] == task and config["policy"]["type"] == "sdp"
+    with pytest.raises(SystemExit):
+        job.parse_args(["--num_demos", "0"])
+
+
+@pytest.mark.slow
+def test_main_job_records_trains_evaluates_and_resumes(tmp_path, monkeypatch, capsys):
+    config = json.loads(shipped_configs.path("robomimic_can_lowdim_cpu").read_text())
+    config["policy"] |= {
+        "down_dims": [16, 32],
+        "diffusion_step_embed_dim": 16,
+        "n_action_steps": 4,
+        "num_train_timesteps": 10,
+        "num_inference_steps": 10,
+        "scheduler_warmup_steps": 0,
+    }
+    config |= {"steps": 2, "batch_size": 4, "log_freq": 1, "num_workers": 0}
+    config_path = tmp_path / "tiny.json"
+    config_path.write_text(json.dumps(config))
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    monkeypatch.setenv("WANDB_MODE", "disabled")
+    monkeypatch.setattr(job, "eval_args", lambda *a: [*JOB_EVAL_ARGS(*a), "--env.episode_length=12"])
+    out_dir = tmp_path / "out"
+    argv = [f"--output_dir={out_dir}", f"--config_path={config_path}", "--num_demos=2", "--eval_episodes=1"]
+
+    job.main(argv)
+    out = capsys.readouterr().out
+    assert "Scripted PickPlaceCan: 2/2 attempts succeeded (100.0%)" in out
+    assert "=== SDP on robomimic PickPlaceCan (low-dim, scripted demonstrations) ===" in out
+    first = json.loads((out_dir / "summary.json").read_text())
+    assert first["task"] == "PickPlaceCan" and first["n_episodes"] == 1
+    assert first["demonstrations"]["successes"] == 2 and first["demonstrations"]["success_rate"] == 1.0
+    assert first["denoiser_calls_per_chunk"] == 5  # N = 10 over h = 2 chunks
+    assert first["video_files"] and Path(first["video_files"][0]).exists()
+
+    job.main([*argv, "--resume"])
+    second = json.loads((out_dir / "summary.json").read_text())
+    assert second["sessions"][-1]["stages"] == {
+        "data": "reused",
+        "train": "reused",
+        "eval": "reused",
+        "measure": "ran",
+    }
+    assert second["demonstrations"] == first["demonstrations"]
+    assert second["stage_time_s"]["data"] == first["stage_time_s"]["data"]
