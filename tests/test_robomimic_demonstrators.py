@@ -1,12 +1,20 @@
-"""The scripted demonstrators: the phase machines on hand-made observations (no robosuite), and a
-full Can episode in robosuite that ends with the can in its compartment and the gripper clear."""
+"""The scripted demonstrators: the phase machines on hand-made observations (no robosuite), and full
+Can and Square episodes in robosuite that end with the object placed and the gripper clear."""
 
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from lerobot_sdp.robomimic.demonstrators import CLOSED, OPEN, CanDemonstrator, LiftDemonstrator
+from lerobot_sdp.robomimic.demonstrators import (
+    CLOSED,
+    OPEN,
+    CanDemonstrator,
+    LiftDemonstrator,
+    SquareDemonstrator,
+    wrap,
+    yaw,
+)
 
 # A stand-in for robosuite's PickPlaceCan: the can's compartment is placement 3 (robosuite's layout).
 COMPARTMENT = np.array([0.1975, 0.4025, 0.8])
@@ -91,28 +99,70 @@ def test_lift_rises_above_the_cube_start_and_regrasps_a_dropped_cube():
     assert d.phase == "reach"
 
 
-def test_a_can_episode_ends_with_the_can_placed_and_the_gripper_clear():
+def about_z(angle: float) -> np.ndarray:
+    """The quaternion (x, y, z, w) of a turn about the vertical."""
+    return np.array([0.0, 0.0, np.sin(angle / 2), np.cos(angle / 2)])
+
+
+def test_yaw_and_wrap():
+    for angle in (-3.0, -1.2, 0.0, 0.4, 3.1):
+        assert yaw(about_z(angle)) == pytest.approx(angle)
+    assert wrap(np.radians(-80), np.pi / 2) == pytest.approx(np.radians(10))  # a square: a quarter turn
+    assert wrap(np.radians(100), np.pi) == pytest.approx(np.radians(-80))  # the gripper: half a turn
+
+
+def test_square_turns_the_nut_the_short_way_to_the_peg():
+    d = SquareDemonstrator(np.random.default_rng(0))
+    for nut_yaw, turn in ((80, 10), (10, -10), (-50, -40), (135, -45)):
+        got = np.degrees(d._placing_turn({"SquareNut_quat": about_z(np.radians(nut_yaw))}))
+        assert got == pytest.approx(turn) or (abs(turn) == 45 and got == pytest.approx(-turn))
+
+
+@pytest.fixture(scope="module")
+def robosuite_env():
     pytest.importorskip(
         "robosuite", reason="robosuite is not installed: pip install 'lerobot_policy_sdp[robomimic]'"
     )
     from lerobot_sdp.robomimic.env import RobomimicEnv
 
-    env = RobomimicEnv("PickPlaceCan")
-    d = CanDemonstrator(np.random.default_rng(1))
-    env.reset(seed=100_001)
-    d.reset(env.sim_env)
-    phases = []
+    return RobomimicEnv
+
+
+def run_episode(env, demonstrator, seed: int) -> tuple[bool, list[str], dict]:
+    """One scripted episode; (success, the phases in order, the last raw observation)."""
+    env.reset(seed=seed)
+    demonstrator.reset(env.sim_env)
+    phases, success = [], False
     for _ in range(400):
-        _, reward, terminated, truncated, info = env.step(d.act(env.raw_observation))
-        if not phases or phases[-1] != d.phase:
-            phases.append(d.phase)
-        if terminated or truncated:
+        _, reward, success, truncated, info = env.step(demonstrator.act(env.raw_observation))
+        if not phases or phases[-1] != demonstrator.phase:
+            phases.append(demonstrator.phase)
+        if success or truncated:
             break
-    raw = env.raw_observation
+    assert success == info["is_success"] and reward == float(success)
+    return success, phases, env.raw_observation
+
+
+def test_a_can_episode_ends_with_the_can_placed_and_the_gripper_clear(robosuite_env):
+    env = robosuite_env("PickPlaceCan")
+    success, phases, raw = run_episode(env, CanDemonstrator(np.random.default_rng(1)), 100_001)
     env.close()
-    assert terminated and info["is_success"] and reward == 1.0
-    assert phases[-1] == "retreat" and {"carry", "lower", "release"} <= set(phases)
+    assert success and phases[-1] == "retreat" and {"carry", "lower", "release"} <= set(phases)
     # In the can's quarter of the right-hand bin, resting on its floor, the gripper more than 4 cm away.
     assert np.abs(raw["Can_pos"][:2] - COMPARTMENT[:2]).max() < 0.06
     assert raw["Can_pos"][2] < COMPARTMENT[2] + 0.1
     assert np.linalg.norm(raw["robot0_eef_pos"] - raw["Can_pos"]) > 0.04
+
+
+def test_a_square_episode_ends_with_the_nut_around_the_peg(robosuite_env):
+    env = robosuite_env("NutAssemblySquare")
+    # A scene where fingers closing along the handle, instead of across it, lose the nut.
+    demonstrator = SquareDemonstrator(np.random.default_rng(100_000))
+    success, phases, raw = run_episode(env, demonstrator, 100_000)
+    table_z = env.sim_env.table_offset[2]
+    env.close()
+    assert success and {"carry", "lower"} <= set(phases)
+    assert np.abs(raw["SquareNut_pos"][:2] - demonstrator.peg[:2]).max() < 0.03
+    assert raw["SquareNut_pos"][2] < table_z + 0.05
+    # Square to the peg (a quarter turn is the same square).
+    assert abs(wrap(yaw(raw["SquareNut_quat"]), np.pi / 2)) < 0.1

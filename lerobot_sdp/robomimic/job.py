@@ -18,7 +18,6 @@ from pathlib import Path
 
 from .. import shipped_configs
 from ..main_job import StageTimings, job_parser, run_main, train_evaluate_measure
-from .demonstrators import DEMONSTRATORS
 from .record_scripted import DEFAULT_SEED, DemonstrationsFailedError, default_repo_id, describe, record
 
 EVAL_SEED = 1000  # episode i of the evaluation starts from seed EVAL_SEED + i
@@ -29,7 +28,7 @@ RECORDING = "recording.json"  # the demonstrator's statistics, beside the datase
 
 def parse_args(argv=None) -> argparse.Namespace:
     p = job_parser(__doc__, "outputs/robomimic_main", None)
-    p.add_argument("--task", choices=sorted(DEMONSTRATORS), default="PickPlaceCan")
+    p.add_argument("--task", choices=sorted(CONFIGS), default="PickPlaceCan")
     p.add_argument("--num_demos", type=int, default=200, help="successful demonstrations to record")
     p.add_argument("--demo_seed", type=int, default=DEFAULT_SEED, help="demonstration i uses demo_seed + i")
     args = p.parse_args(argv)

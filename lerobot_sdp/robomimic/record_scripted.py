@@ -1,8 +1,8 @@
 """`lerobot-sdp-record-scripted`: scripted robomimic demonstrations recorded straight into a LeRobotDataset.
 
-`--task Lift` or `--task PickPlaceCan` (the demonstrators are described in `demonstrators.py`). Only
-successful episodes are kept (like robomimic's "proficient human" sets); the success rate over all
-attempts is reported. Episode *i* is seeded `--seed + i`.
+`--task Lift`, `PickPlaceCan` or `NutAssemblySquare` (the demonstrators are described in
+`demonstrators.py`). Only successful episodes are kept (like robomimic's "proficient human" sets);
+the success rate over all attempts is reported. Episode *i* is seeded `--seed + i`.
 """
 
 import argparse
