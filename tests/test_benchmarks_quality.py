@@ -188,6 +188,32 @@ def test_steps_flag_is_a_labelled_reduced_budget():
     assert name == "cpu_3000steps" and budget.steps == budget.ablation_steps == 3000
     assert budget.batch_size == BUDGETS["cpu"].batch_size  # everything else stays the budget's
     assert resolve_budget(parser.parse_args(["quality", "--budget", "cpu"])) == ("cpu", BUDGETS["cpu"])
+    robomimic = parser.parse_args(["quality", "--env", "robomimic"])
+    assert resolve_budget(robomimic) == ("robomimic_cpu", BUDGETS["robomimic_cpu"])
+
+
+def test_robomimic_comparison_on_scripted_demonstrations(tmp_path):
+    """`--env robomimic`: demonstrations recorded once into the output folder, every policy trained
+    on them and evaluated in the robomimic env on the same episodes, at its own denoiser cost."""
+    pytest.importorskip(
+        "robosuite", reason="robosuite is not installed: pip install 'lerobot_policy_sdp[robomimic]'"
+    )
+    out = tmp_path / "q"
+    argv = ["quality", "--env", "robomimic", "--task", "Lift", "--budget", "tiny", "--num_demos", "2"]
+    cli.main([*argv, "--output_dir", str(out)])
+    report = json.loads((out / "results.json").read_text())
+    assert report["task"] == "robomimic Lift (low-dim)" and report["eval_seed"] == 1000
+    recording = json.loads((out / "data" / "recording.json").read_text())
+    assert recording["successes"] == 2 and recording["repo_id"] == "local/scripted_lift"
+    n = BUDGETS["tiny"].num_inference_steps
+    calls = {name: row["denoiser_calls_per_chunk"] for name, row in report["rows"].items()}
+    assert calls == {"dp": n, "sdp_h2": n / 2, "sdp_h4": n / 4}
+    for name, row in report["rows"].items():
+        assert row["n_episodes"] == 2
+        config = json.loads((out / "runs" / name / "eval" / "eval_info.json").read_text())
+        log = (out / "runs" / name / "eval.log").read_text()
+        assert "robomimic" in log and "'task': 'Lift'" in log, name
+        assert config["overall"]["n_episodes"] == 2
 
 
 def test_wall_time_skips_the_stop_between_sessions(tmp_path):

@@ -12,9 +12,7 @@ pytest.importorskip(
 
 from lerobot_sdp import shipped_configs
 from lerobot_sdp.robomimic import job
-
-# The job's own evaluation flags, before a test shortens the episodes.
-JOB_EVAL_ARGS = job.eval_args
+from lerobot_sdp.robomimic.evaluation import robomimic_eval_args
 
 
 def test_each_task_trains_from_its_shipped_config():
@@ -43,7 +41,7 @@ def test_main_job_records_trains_evaluates_and_resumes(tmp_path, monkeypatch, ca
     config_path.write_text(json.dumps(config))
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     monkeypatch.setenv("WANDB_MODE", "disabled")
-    monkeypatch.setattr(job, "eval_args", lambda *a: [*JOB_EVAL_ARGS(*a), "--env.episode_length=12"])
+    monkeypatch.setattr(job, "robomimic_eval_args", lambda *a: robomimic_eval_args(*a, episode_length=12))
     out_dir = tmp_path / "out"
     argv = [f"--output_dir={out_dir}", f"--config_path={config_path}", "--num_demos=2", "--eval_episodes=1"]
 

@@ -1,4 +1,6 @@
-"""Quality: SDP against LeRobot's Diffusion Policy on Push-T at equal budget, plus the paper's ablations.
+"""Quality: SDP against LeRobot's Diffusion Policy at equal budget, plus the paper's ablations, on
+Push-T (keypoints) or a robomimic task (`--env robomimic --task Lift`, low-dim, on scripted
+demonstrations recorded into the output directory unless `--dataset_repo_id` names a dataset).
 
 Every run trains through `lerobot-train` and evaluates through `lerobot-eval` on one fixed set of
 episode seeds (batched sync envs), with the same data, U-Net size, observation history, batch
@@ -24,12 +26,15 @@ from ..geometry import ChunkGeometry
 from ..lerobot_cli import evaluate, last_checkpoint, train, trained_steps
 from ..pusht.data import keypoints_dataset_args
 from ..pusht.evaluation import EVAL_SEED, OBS_TYPE, pusht_eval_args
+from ..robomimic.demonstrators import DEMONSTRATORS
+from ..robomimic.evaluation import EVAL_SEED as ROBOMIMIC_EVAL_SEED
+from ..robomimic.evaluation import robomimic_eval_args
 from . import cost_sweep
 from .curves import checkpoint_steps, episode_stats, plot, step_logs, train_wall_s, wall_time_at
 from .matched_dp import matching_dp_flags
 from .report import table, with_se, write_json
 
-DP_HORIZON = 16  # LeRobot's reference Push-T Diffusion Policy (lerobot/diffusion_pusht)
+DP_HORIZON = 16  # LeRobot's reference Push-T Diffusion Policy (lerobot/diffusion_pusht), DP's robomimic one
 
 
 @dataclass(frozen=True)
@@ -43,7 +48,7 @@ class Budget:
     n_episodes: int
     num_inference_steps: int = 100
     scheduler: str = "DDPM"
-    episode_length: int | None = None  # None: Push-T's own 300
+    episode_length: int | None = None  # None: the task's own (Push-T 300, robomimic 400)
     ablation_steps: int | None = None  # the reduced budget of the ablation runs
 
 
@@ -52,6 +57,8 @@ BUDGETS = {
     "tiny": Budget(2, 4, (16, 32), 16, 1e-4, 0, 2, 8, "DDIM", episode_length=10, ablation_steps=2),
     # state-based keypoints Push-T on 2 CPU cores: a few hours for the comparison
     "cpu": Budget(20_000, 64, (64, 128, 256), 64, 5e-4, 500, 100, ablation_steps=3_000),
+    # low-dim robomimic on 2 CPU cores, DDIM 16 as the paper's real-robot runs (the sweep adds DDPM 100)
+    "robomimic_cpu": Budget(20_000, 64, (64, 128, 256), 64, 3e-4, 500, 50, 16, "DDIM", ablation_steps=3_000),
 }
 # and "paper": the authors' hyperparameters, read from the shipped config (`paper_budget`), for a GPU
 PAPER_CONFIG = "pusht_state_paper"
@@ -207,8 +214,7 @@ def execute(
     output_dir: Path,
     data_args: list[str],
     common: list[str],
-    budget: Budget,
-    device: str,
+    eval_args: list[str],
     curve_every: int | None = None,
     echo: bool = True,
 ) -> dict:
@@ -224,10 +230,7 @@ def execute(
     if not run.trains_as:
         timing["train_wall_s"] += time.monotonic() - t0
         timing_file.write_text(json.dumps(timing))
-    overrides = [f"--policy.{k}={v}" for k, v in run.eval_overrides.items()]
-    eval_args = (
-        pusht_eval_args(OBS_TYPE, budget.n_episodes, EVAL_SEED, device, budget.episode_length) + overrides
-    )
+    eval_args = eval_args + [f"--policy.{k}={v}" for k, v in run.eval_overrides.items()]
     here = run_dir(output_dir, run)
     evaluate(model_dir, here / "eval", eval_args, here / "eval.log", echo)
     cost = stream_cost(model_dir, overrides=run.eval_overrides)
@@ -331,7 +334,17 @@ def markdown(rows: dict[str, dict], budget_name: str, budget: Budget) -> str:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--budget", choices=[*BUDGETS, "paper"], default="cpu")
+    parser.add_argument(
+        "--budget", choices=[*BUDGETS, "paper"], default=None, help="default: cpu (Push-T), robomimic_cpu"
+    )
+    parser.add_argument("--env", choices=["pusht", "robomimic"], default="pusht")
+    parser.add_argument("--task", choices=sorted(DEMONSTRATORS), default="Lift", help="the robomimic task")
+    parser.add_argument(
+        "--num_demos",
+        type=int,
+        default=200,
+        help="scripted robomimic demonstrations to record (and train on)",
+    )
     parser.add_argument(
         "--runs",
         choices=["comparison", "horizon_control", "ablations", "warmstart", "all"],
@@ -377,19 +390,50 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def resolve_budget(args: argparse.Namespace) -> tuple[str, Budget]:
     """The budget's name and settings, with --steps applied to every run (comparison and ablations)."""
-    budget = paper_budget() if args.budget == "paper" else BUDGETS[args.budget]
+    name = args.budget or ("robomimic_cpu" if args.env == "robomimic" else "cpu")
+    budget = paper_budget() if name == "paper" else BUDGETS[name]
     if args.steps is None:
-        return args.budget, budget
+        return name, budget
     if args.steps < 1:
         raise SystemExit(f"--steps must be at least 1, got {args.steps}.")
-    return f"{args.budget}_{args.steps}steps", replace(budget, steps=args.steps, ablation_steps=args.steps)
+    return f"{name}_{args.steps}steps", replace(budget, steps=args.steps, ablation_steps=args.steps)
+
+
+def task_label(args: argparse.Namespace) -> str:
+    return f"robomimic {args.task} (low-dim)" if args.env == "robomimic" else "Push-T keypoints"
+
+
+def evaluation(args: argparse.Namespace, budget: Budget) -> tuple[int, list[str]]:
+    """The first episode seed and lerobot-eval's flags, the same for every run and sampler."""
+    if args.env == "robomimic":
+        n, length = budget.n_episodes, budget.episode_length
+        return ROBOMIMIC_EVAL_SEED, robomimic_eval_args(args.task, n, args.device, length)
+    return EVAL_SEED, pusht_eval_args(
+        OBS_TYPE, budget.n_episodes, EVAL_SEED, args.device, budget.episode_length
+    )
+
+
+def training_data(args: argparse.Namespace, output_dir: Path) -> list[str]:
+    """lerobot-train's dataset flags: --dataset_repo_id, else the task's own data (the Push-T zarr or
+    the Hub; scripted robomimic demonstrations, recorded once into OUTPUT_DIR/data)."""
+    if args.dataset_repo_id:
+        root = [f"--dataset.root={args.dataset_root}"] if args.dataset_root else []
+        return [f"--dataset.repo_id={args.dataset_repo_id}", *root]
+    if args.env == "robomimic":
+        from ..robomimic.job import dataset_args, record_demonstrations  # robosuite loads here
+
+        return dataset_args(record_demonstrations(args.task, args.num_demos, output_dir / "data"))
+    return keypoints_dataset_args(args.zarr, output_dir / "data")
 
 
 def run(args: argparse.Namespace) -> dict:
     budget_name, budget = resolve_budget(args)
     if args.jobs < 1:
         raise SystemExit(f"--jobs must be at least 1, got {args.jobs}.")
-    output_dir = args.output_dir or Path(f"outputs/quality_{budget_name}")
+    default_dir = (
+        f"quality_{args.task.lower()}_{budget_name}" if args.env == "robomimic" else f"quality_{budget_name}"
+    )
+    output_dir = args.output_dir or Path("outputs") / default_dir
     runs = {
         "comparison": comparison_runs,
         "horizon_control": horizon_control_runs,
@@ -407,12 +451,8 @@ def run(args: argparse.Namespace) -> dict:
     print("\n".join(status(selected, output_dir)), flush=True)
     if args.status:
         return {}
-    if args.dataset_repo_id:
-        data_args = [f"--dataset.repo_id={args.dataset_repo_id}"] + (
-            [f"--dataset.root={args.dataset_root}"] if args.dataset_root else []
-        )
-    else:
-        data_args = keypoints_dataset_args(args.zarr, output_dir / "data")
+    data_args = training_data(args, output_dir)
+    eval_seed, eval_args = evaluation(args, budget)
     common = [
         f"--batch_size={budget.batch_size}",
         "--seed=1000",
@@ -426,13 +466,12 @@ def run(args: argparse.Namespace) -> dict:
     # rows and sweeps of other run sets in this folder stay in the report
     previous = json.loads(results_file.read_text()) if results_file.exists() else {}
     rows = previous.get("rows", {})
-    report = {"budget": budget_name, "settings": asdict(budget), "eval_seed": EVAL_SEED, "rows": rows}
+    report = {"budget": budget_name, "settings": asdict(budget), "eval_seed": eval_seed, "rows": rows}
+    report["task"] = task_label(args)
     report |= {"sweep": previous["sweep"]} if "sweep" in previous else {}
 
     def execute_run(r: Run) -> dict:
-        return execute(
-            r, output_dir, data_args, common, budget, args.device, args.curve_every, echo=args.jobs == 1
-        )
+        return execute(r, output_dir, data_args, common, eval_args, args.curve_every, echo=args.jobs == 1)
 
     for row in run_in_parallel(selected, execute_run, args.jobs):
         rows[row["run"]] = row
@@ -441,13 +480,13 @@ def run(args: argparse.Namespace) -> dict:
             plot(
                 rows,
                 output_dir / "curves.png",
-                f"Push-T keypoints, budget {budget_name}, {budget.n_episodes} episodes per point",
+                f"{task_label(args)}, budget {budget_name}, {budget.n_episodes} episodes per point",
             )
         print("\n".join(status(selected, output_dir)), flush=True)
     if args.sweep:
-        report["sweep"] = report.get("sweep", {}) | run_sweep(selected, output_dir, budget, args.device)
+        report["sweep"] = report.get("sweep", {}) | run_sweep(selected, output_dir, eval_args)
         write_report(report, output_dir, budget)
-        cost_sweep.plot(report["sweep"], output_dir / "cost.png", f"Push-T keypoints, budget {budget_name}")
+        cost_sweep.plot(report["sweep"], output_dir / "cost.png", f"{task_label(args)}, budget {budget_name}")
     print((output_dir / "results.md").read_text())
     return report
 
@@ -468,9 +507,8 @@ def run_in_parallel(runs: list[Run], execute_run: Callable[[Run], dict], jobs: i
             yield from (f.result() for f in as_completed([pool.submit(execute_run, r) for r in stage]))
 
 
-def run_sweep(selected: list[Run], output_dir: Path, budget: Budget, device: str) -> dict[str, list[dict]]:
+def run_sweep(selected: list[Run], output_dir: Path, eval_args: list[str]) -> dict[str, list[dict]]:
     """The comparison's final models at several samplers each (no retraining)."""
-    eval_args = pusht_eval_args(OBS_TYPE, budget.n_episodes, EVAL_SEED, device, budget.episode_length)
     sweeps = {}
     for run in selected:
         if run.name not in ("dp", "sdp_h2", "sdp_h4"):

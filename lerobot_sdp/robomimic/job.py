@@ -18,9 +18,9 @@ from pathlib import Path
 
 from .. import shipped_configs
 from ..main_job import StageTimings, job_parser, run_main, train_evaluate_measure
+from .evaluation import robomimic_eval_args
 from .record_scripted import DEFAULT_SEED, DemonstrationsFailedError, default_repo_id, describe, record
 
-EVAL_SEED = 1000  # episode i of the evaluation starts from seed EVAL_SEED + i
 # The shipped config of each task with a scripted demonstrator.
 CONFIGS = {"Lift": "robomimic_lift_lowdim_cpu", "PickPlaceCan": "robomimic_can_lowdim_cpu"}
 RECORDING = "recording.json"  # the demonstrator's statistics, beside the dataset
@@ -45,48 +45,39 @@ def recorded(data_dir: Path) -> dict | None:
     return json.loads(path.read_text()) if path.exists() else None
 
 
-def record_demonstrations(args: argparse.Namespace, data_dir: Path) -> dict:
-    """Record the demonstrations (or reuse a finished recording); their statistics."""
+def record_demonstrations(task: str, num_demos: int, data_dir: Path, demo_seed: int = DEFAULT_SEED) -> dict:
+    """Record the demonstrations into DATA_DIR/demos (or reuse a finished recording); their
+    statistics, with the dataset's `repo_id` and `root`."""
     stats = recorded(data_dir)
     root = data_dir / "demos"
     if stats is not None:
         print(f"[data] reusing {root} ({stats['successes']} demonstrations)", flush=True)
         return stats
-    print(f"[data] recording {args.num_demos} scripted {args.task} demonstrations -> {root}", flush=True)
+    print(f"[data] recording {num_demos} scripted {task} demonstrations -> {root}", flush=True)
     # A recording cut short leaves a partial dataset and no statistics: it is recorded again.
     start = time.monotonic()
-    stats = record(args.num_demos, root, args.task, seed=args.demo_seed, overwrite=True)
-    stats |= {"repo_id": default_repo_id(args.task), "seconds": round(time.monotonic() - start, 1)}
-    print(f"[data] {describe(args.task, stats, stats['seconds'], root)}", flush=True)
+    stats = record(num_demos, root, task, seed=demo_seed, overwrite=True)
+    stats |= {
+        "repo_id": default_repo_id(task),
+        "root": str(root),
+        "seconds": round(time.monotonic() - start, 1),
+    }
+    print(f"[data] {describe(task, stats, stats['seconds'], root)}", flush=True)
     (data_dir / RECORDING).write_text(json.dumps(stats, indent=2))
     return stats
 
 
-def eval_args(task: str, n_episodes: int, device: str) -> list[str]:
-    """robomimic evaluation on batched sync envs (async ones fight the training-free cores for CPU)."""
-    return [
-        "--env.type=robomimic",
-        f"--env.task={task}",
-        f"--eval.n_episodes={n_episodes}",
-        f"--eval.batch_size={min(n_episodes, 25)}",
-        "--eval.use_async_envs=false",
-        f"--policy.device={device}",
-        f"--seed={EVAL_SEED}",
-    ]
+def dataset_args(stats: dict) -> list[str]:
+    """lerobot-train's dataset flags for a recording."""
+    return [f"--dataset.repo_id={stats['repo_id']}", f"--dataset.root={stats['root']}"]
 
 
 def run_job(args: argparse.Namespace, timings: StageTimings) -> dict:
     data_dir = args.output_dir / "data"
     with timings.stage("data", reused=recorded(data_dir) is not None):
-        stats = record_demonstrations(args, data_dir)
-    dataset_args = [f"--dataset.repo_id={stats['repo_id']}", f"--dataset.root={data_dir / 'demos'}"]
-    summary = train_evaluate_measure(
-        args,
-        timings,
-        dataset_args,
-        eval_args(args.task, args.eval_episodes, args.device),
-        "sdp_robomimic_main",
-    )
+        stats = record_demonstrations(args.task, args.num_demos, data_dir, args.demo_seed)
+    eval_args = robomimic_eval_args(args.task, args.eval_episodes, args.device)
+    summary = train_evaluate_measure(args, timings, dataset_args(stats), eval_args, "sdp_robomimic_main")
     return {"task": args.task, "demonstrations": stats, **summary}
 
 
