@@ -2,13 +2,17 @@
 #   make main   set up, then run the Push-T main job (data -> train SDP -> lerobot-eval -> summary)
 #   make test   set up, lint (ruff check + format check), then run the test suite (what CI runs)
 #   make test-fast   the core tests only, for the edit loop
-.PHONY: setup main lint test test-fast mutation
+.PHONY: setup main robomimic lint test test-fast mutation
 
 setup:
 	bash .ci/setup
 
 main: setup
 	.venv/bin/lerobot-sdp-pusht $(ARGS)
+
+# robomimic's main job: scripted Can demonstrations -> train SDP (CPU config) -> lerobot-eval -> summary
+robomimic: setup
+	.venv/bin/lerobot-sdp-robomimic $(ARGS)
 
 lint: setup
 	.venv/bin/ruff check . && .venv/bin/ruff format --check .

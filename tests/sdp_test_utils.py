@@ -130,3 +130,24 @@ def stream_step_with(buffer, denoiser, generator=None, committed: int = 0):
     from lerobot_sdp.buffer import bind
 
     return buffer.stream_step(bind(buffer.schedule, buffer.geometry, denoiser), generator, committed)
+
+
+def tiny_job_config(shipped: str, path, policy: dict | None = None, **train) -> None:
+    """A shipped training config shrunk to seconds (a tiny U-Net, 10 denoising steps, 2 training
+    steps) and written to `path`, for end-to-end runs of the main jobs."""
+    import json
+
+    from lerobot_sdp import shipped_configs
+
+    config = json.loads(shipped_configs.path(shipped).read_text())
+    config["policy"] |= {
+        "down_dims": [16, 32],
+        "diffusion_step_embed_dim": 16,
+        "n_action_steps": 4,
+        "num_train_timesteps": 10,
+        "num_inference_steps": 10,
+        "scheduler_warmup_steps": 0,
+        **(policy or {}),
+    }
+    config |= {"steps": 2, "batch_size": 4, "log_freq": 1, **train}
+    path.write_text(json.dumps(config))

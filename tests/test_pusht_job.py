@@ -4,12 +4,10 @@ import json
 from pathlib import Path
 
 import pytest
-from sdp_test_utils import make_tiny_pusht_dataset
+from sdp_test_utils import make_tiny_pusht_dataset, tiny_job_config
 
 from lerobot_sdp.pusht import job
 from lerobot_sdp.pusht.evaluation import pusht_eval_args
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.slow
@@ -17,20 +15,9 @@ def test_main_job_then_resume_keeps_the_first_runs_timings(tmp_path, monkeypatch
     """The job end to end on a tiny dataset and config (2 steps, 1 short episode), then `--resume`."""
     dataset = tmp_path / "dataset"
     make_tiny_pusht_dataset(dataset)
-    config = json.loads((REPO / "configs" / "pusht_state_cpu.json").read_text())
-    config["policy"] |= {
-        "down_dims": [16, 32],
-        "diffusion_step_embed_dim": 16,
-        "n_action_steps": 4,
-        "n_chunks": 2,
-        "num_train_timesteps": 10,
-        "num_inference_steps": 10,
-        "scheduler_warmup_steps": 0,
-        "max_delay": 1,  # fits the padding
-    }
-    config |= {"steps": 2, "batch_size": 4, "log_freq": 1}
     config_path = tmp_path / "tiny.json"
-    config_path.write_text(json.dumps(config))
+    # max_delay 1 fits the padding of h = 2
+    tiny_job_config("pusht_state_cpu", config_path, {"n_chunks": 2, "max_delay": 1})
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     monkeypatch.setenv("WANDB_MODE", "disabled")
     monkeypatch.setenv("MUJOCO_GL", "egl")

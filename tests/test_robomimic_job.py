@@ -5,6 +5,7 @@ import json
 from pathlib import Path
 
 import pytest
+from sdp_test_utils import tiny_job_config
 
 pytest.importorskip(
     "robosuite", reason="robosuite is not installed: pip install 'lerobot_policy_sdp[robomimic]'"
@@ -27,18 +28,8 @@ def test_each_task_trains_from_its_shipped_config():
 
 @pytest.mark.slow
 def test_main_job_records_trains_evaluates_and_resumes(tmp_path, monkeypatch, capsys):
-    config = json.loads(shipped_configs.path("robomimic_can_lowdim_cpu").read_text())
-    config["policy"] |= {
-        "down_dims": [16, 32],
-        "diffusion_step_embed_dim": 16,
-        "n_action_steps": 4,
-        "num_train_timesteps": 10,
-        "num_inference_steps": 10,
-        "scheduler_warmup_steps": 0,
-    }
-    config |= {"steps": 2, "batch_size": 4, "log_freq": 1, "num_workers": 0}
     config_path = tmp_path / "tiny.json"
-    config_path.write_text(json.dumps(config))
+    tiny_job_config("robomimic_can_lowdim_cpu", config_path, num_workers=0)
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     monkeypatch.setenv("WANDB_MODE", "disabled")
     monkeypatch.setattr(job, "robomimic_eval_args", lambda *a: robomimic_eval_args(*a, episode_length=12))

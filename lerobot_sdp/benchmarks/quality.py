@@ -58,7 +58,7 @@ BUDGETS = {
     # state-based keypoints Push-T on 2 CPU cores: a few hours for the comparison
     "cpu": Budget(20_000, 64, (64, 128, 256), 64, 5e-4, 500, 100, ablation_steps=3_000),
     # low-dim robomimic on 2 CPU cores, DDIM 16 as the paper's real-robot runs (the sweep adds DDPM 100)
-    "robomimic_cpu": Budget(20_000, 64, (64, 128, 256), 64, 3e-4, 500, 50, 16, "DDIM", ablation_steps=3_000),
+    "robomimic_cpu": Budget(20_000, 64, (64, 128, 256), 64, 5e-4, 500, 50, 16, "DDIM", ablation_steps=3_000),
 }
 # and "paper": the authors' hyperparameters, read from the shipped config (`paper_budget`), for a GPU
 PAPER_CONFIG = "pusht_state_paper"
