@@ -615,14 +615,16 @@ def run_tests(root: Path, tests: list[str], deselect: list[str], timeout: float)
     return proc.returncode, proc.stdout + proc.stderr
 
 
-def first_failure(output: str) -> str:
+def first_failure(rc: int, output: str) -> str:
     for line in output.splitlines():
         if line.startswith(("FAILED ", "ERROR ")):
             return line.split(" - ")[0].split(" ", 1)[1]
     if "[timeout" in output:
         return "timeout"
+    # No test failed: pytest itself died (a signal, a crash in a library thread); say so, with the
+    # last line it left, so that a flaky kill is not mistaken for a test that noticed the mutant.
     tail = [line for line in output.splitlines() if line.strip()]
-    return tail[-1][:120] if tail else "?"
+    return f"pytest exit {rc}, no failed test: " + (tail[-1][:100] if tail else "no output")
 
 
 def run_mutant(m: Mutant, root: Path, tests, deselect, timeout) -> Result:
@@ -639,7 +641,7 @@ def run_mutant(m: Mutant, root: Path, tests, deselect, timeout) -> Result:
     elif rc == 5:  # no tests collected: the harness is broken, not the mutant
         status, by = "error", "pytest collected no tests"
     else:
-        status, by = "killed", first_failure(output)
+        status, by = "killed", first_failure(rc, output)
     return Result(m.id, m.file, m.description, m.equivalent, status, by, round(time.monotonic() - start, 1))
 
 
