@@ -31,6 +31,6 @@ test-fast: setup
 	$(PYTEST) -m "not slow" $(FAST_TESTS) $(PYTEST_ARGS); $(NO_TESTS_FAILS)
 
 # Mutation check of the streaming core (buffer, schedule, geometry, noise schemes): every listed
-# single-line bug must fail the core tests (about an hour and a half on 2 CPU cores; report in outputs/mutants/).
+# single-line bug must fail the core tests (about an hour on 2 CPU cores with ARGS="--jobs 2"; report in outputs/mutants/).
 mutation: setup
 	.venv/bin/python .ci/mutants.py $(ARGS)
