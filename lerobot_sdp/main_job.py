@@ -31,8 +31,9 @@ from .lerobot_cli import CLIError, eval_info, evaluate, train, trained_steps
 STAGES = ("data", "train", "eval", "measure")
 
 
-def job_parser(description: str, output_dir: str, config: str) -> argparse.ArgumentParser:
-    """The options every main job has; the task adds its data options."""
+def job_parser(description: str, output_dir: str, config: str | None) -> argparse.ArgumentParser:
+    """The options every main job has; the task adds its data options. `config`: the shipped config
+    by default (None: the task picks one after parsing)."""
     p = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--output_dir", type=Path, default=Path(output_dir))
     p.add_argument(
