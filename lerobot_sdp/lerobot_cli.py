@@ -99,6 +99,23 @@ def train(
     return model_dir
 
 
+def eval_flags(
+    env: list[str], n_episodes: int, batch_size: int, device: str, seed: int, episode_length: int | None
+) -> list[str]:
+    """`lerobot-eval` flags for `n_episodes` from `seed` on batched sync envs (async env workers only
+    compete with the policy for a small machine's cores); `env` names the environment."""
+    length = [f"--env.episode_length={episode_length}"] if episode_length else []
+    return [
+        *env,
+        *length,
+        f"--eval.n_episodes={n_episodes}",
+        f"--eval.batch_size={min(n_episodes, batch_size)}",
+        "--eval.use_async_envs=false",
+        f"--policy.device={device}",
+        f"--seed={seed}",
+    ]
+
+
 def eval_info(eval_dir: Path) -> Path:
     """The results file of a finished `lerobot-eval` run (its presence means finished)."""
     return eval_dir / "eval_info.json"
