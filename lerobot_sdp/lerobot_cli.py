@@ -10,6 +10,8 @@ import os
 import signal
 import subprocess
 import sys
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from dataclasses import dataclass
 from pathlib import Path
 
 
@@ -129,3 +131,26 @@ def evaluate(model_dir: Path, eval_dir: Path, args: list[str], log: Path, echo: 
         cmd = [lerobot_bin("lerobot-eval"), f"--policy.path={model_dir}", *args, f"--output_dir={eval_dir}"]
         run_logged(cmd, log, echo)
     return json.loads(info.read_text())["overall"]
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """One `lerobot-eval` run for `evaluate_all`: `evaluate`'s arguments."""
+
+    model_dir: Path
+    eval_dir: Path
+    args: list[str]
+    log: Path
+
+
+def evaluate_all(evaluations: list[Evaluation], jobs: int = 1, echo: bool = True) -> None:
+    """Every evaluation (those already done skipped), `jobs` at once: each `lerobot-eval` runs one
+    torch thread, so on a machine with no training running, two fill a 2-core CPU. In parallel,
+    their output goes to their log files only."""
+
+    def run(e: Evaluation) -> None:
+        evaluate(e.model_dir, e.eval_dir, e.args, e.log, echo and jobs == 1)
+
+    with ThreadPoolExecutor(max_workers=jobs) as pool:
+        for done in as_completed([pool.submit(run, e) for e in evaluations]):
+            done.result()  # a failed evaluation stops the benchmark with its error

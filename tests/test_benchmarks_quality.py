@@ -44,6 +44,8 @@ def test_tiny_comparison_runs_resumes_and_reports(tmp_path, capsys):
         "--curve_every",
         "1",
         "--sweep",
+        "--eval_jobs",
+        "2",
     ]
     cli.main(argv)
     report = json.loads((tmp_path / "q" / "results.json").read_text())
@@ -62,8 +64,14 @@ def test_tiny_comparison_runs_resumes_and_reports(tmp_path, capsys):
         assert row["curve"][-1]["avg_max_reward"] == row["avg_max_reward"]  # the last point is the run's eval
     assert (tmp_path / "q" / "curves.png").stat().st_size > 10_000
     sweep = report["sweep"]  # the final models again at several samplers, calls counted
-    assert [p["sampler"] for p in sweep["dp"]] == ["DDPM100", "DDIM16", "DDIM10", "DDIM5", "DDIM2"]
-    assert [p["denoiser_calls_per_chunk"] for p in sweep["dp"]] == [100, 16, 10, 5, 2]
+    dp_samplers = ["DDPM100", "DDIM16", "DDIM10", "DDIM8", "DDIM5", "DDIM4", "DDIM2"]
+    assert [p["sampler"] for p in sweep["dp"]] == dp_samplers
+    assert [p["denoiser_calls_per_chunk"] for p in sweep["dp"]] == [100, 16, 10, 8, 5, 4, 2]
+    for p in sweep["dp"]:  # each point is its own sampler's evaluation
+        info = json.loads(
+            (tmp_path / "q" / "runs" / "dp" / "sweep" / p["sampler"] / "eval_info.json").read_text()
+        )
+        assert p["avg_max_reward"] == pytest.approx(info["overall"]["avg_max_reward"])
     assert [p["denoiser_calls_per_chunk"] for p in sweep["sdp_h4"]] == [25, 4, 2, 1]
     assert (tmp_path / "q" / "cost.png").stat().st_size > 10_000
     # the same command again resumes: nothing is retrained, the status says so
@@ -124,6 +132,8 @@ def test_parallel_runs_overlap_and_primers_wait_for_their_model():
     assert first_primer_start > last_training_end  # the primers evaluate a finished model
     with pytest.raises(SystemExit, match="--jobs must be at least 1"):
         cli.main(["quality", "--budget", "tiny", "--jobs", "0", "--output_dir", "unused"])
+    with pytest.raises(SystemExit, match="--eval_jobs must be at least 1"):
+        cli.main(["quality", "--budget", "tiny", "--eval_jobs", "0", "--output_dir", "unused"])
 
 
 def test_comparison_trains_every_policy_the_same_way():

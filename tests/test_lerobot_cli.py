@@ -1,7 +1,11 @@
 """Running LeRobot's commands as subprocesses (`lerobot_sdp.lerobot_cli`)."""
 
+import json
 import subprocess
 import sys
+import threading
+import time
+from pathlib import Path
 
 # A parent started as a shell's `cmd &` starts: SIGINT ignored. It starts a Python child, waits until
 # the child runs, sends it SIGINT (as our deployment bench and tests stop LeRobot's robot client) and
@@ -34,3 +38,38 @@ def parent(mode: str) -> str:
 def test_children_of_a_background_process_stop_on_sigint():
     assert parent("as_is") == "ignored"  # the trap: the child inherits SIGINT ignored
     assert parent("fix") == "-2"  # KeyboardInterrupt ends the child (Python exits by SIGINT)
+
+
+def test_evaluate_all_runs_jobs_at_once_and_skips_finished_ones(tmp_path, monkeypatch):
+    from lerobot_sdp import lerobot_cli
+
+    lock, active, peak, started = threading.Lock(), [0], [0], []
+
+    def fake_run_logged(cmd, log, echo=True):
+        eval_dir = Path(next(a for a in cmd if a.startswith("--output_dir=")).split("=", 1)[1])
+        with lock:
+            active[0] += 1
+            peak[0] = max(peak[0], active[0])
+            started.append(eval_dir.name)
+        time.sleep(0.1)
+        eval_dir.mkdir(parents=True)
+        (eval_dir / "eval_info.json").write_text(json.dumps({"overall": {}}))
+        with lock:
+            active[0] -= 1
+
+    monkeypatch.setattr(lerobot_cli, "run_logged", fake_run_logged)
+    done = tmp_path / "done"
+    done.mkdir()
+    (done / "eval_info.json").write_text(json.dumps({"overall": {}}))
+    evaluations = [
+        lerobot_cli.Evaluation(tmp_path / "model", tmp_path / name, [], tmp_path / f"{name}.log")
+        for name in ("a", "b", "c", "d", "done")
+    ]
+    lerobot_cli.evaluate_all(evaluations, jobs=2)
+    assert sorted(started) == ["a", "b", "c", "d"]  # a finished evaluation is not run again
+    assert peak[0] == 2  # two at once, never more
+    peak[0] = 0
+    lerobot_cli.evaluate_all(
+        [lerobot_cli.Evaluation(tmp_path / "m", tmp_path / n, [], tmp_path / "l") for n in "xy"]
+    )
+    assert peak[0] == 1  # one at a time by default

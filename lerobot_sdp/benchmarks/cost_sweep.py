@@ -1,22 +1,24 @@
 """Quality against cost (`lerobot-sdp-bench quality --sweep`): "why not just run DP with fewer steps?"
 
 The comparison's trained models are evaluated again, without retraining, at several samplers:
-Diffusion Policy with DDPM 100 and DDIM 16 / 10 / 5 / 2, SDP with DDPM 100 and DDIM 16 / 8 / 4 at
+Diffusion Policy with DDPM 100 and DDIM 16 / 10 / 8 / 5 / 4 / 2, SDP with DDPM 100 and DDIM 16 / 8 / 4 at
 its h (N must stay divisible by h). Every point is a `lerobot-eval` on the run's fixed episodes plus
-the counted denoiser calls and the latency of one streamed chunk at batch 1 (`stream_cost`); the
-plot puts avg_max_reward and pc_success against both, one curve per policy.
+the counted denoiser calls and the latency of one streamed chunk at batch 1 (`stream_cost`), measured
+once every evaluation is done so that none runs beside it; the plot puts avg_max_reward and
+pc_success against both, one curve per policy.
 """
 
 from pathlib import Path
 
 from ..chunk_cost import stream_cost
-from ..lerobot_cli import evaluate
+from ..lerobot_cli import Evaluation
 from .curves import episode_stats
 from .latency_measure import Sampler
 from .report import reward_success_plot, save_figure
 
 SAMPLERS = {
-    "diffusion": ("DDPM100", "DDIM16", "DDIM10", "DDIM5", "DDIM2"),
+    # DDIM 8 and 4: as many calls as SDP h = 2 and h = 4 at DDIM 16
+    "diffusion": ("DDPM100", "DDIM16", "DDIM10", "DDIM8", "DDIM5", "DDIM4", "DDIM2"),
     "sdp": ("DDPM100", "DDIM16", "DDIM8", "DDIM4"),
 }
 
@@ -26,18 +28,31 @@ def sampler_overrides(text: str) -> dict:
     return {"noise_scheduler_type": sampler.scheduler, "num_inference_steps": sampler.steps}
 
 
-def sweep(policy_type: str, model_dir: Path, here: Path, eval_args: list[str]) -> list[dict]:
-    """One point per sampler of `policy_type`: episode statistics, denoiser calls, latency."""
-    points = []
-    for text in SAMPLERS[policy_type]:
-        overrides = sampler_overrides(text)
-        flags = [f"--policy.{key}={value}" for key, value in overrides.items()]
-        eval_dir = here / "sweep" / text
-        evaluate(model_dir, eval_dir, [*eval_args, *flags], here / "sweep" / f"{text}.log")
-        points.append(
-            {"sampler": text, **episode_stats(eval_dir), **stream_cost(model_dir, overrides=overrides)}
+def flags(text: str) -> list[str]:
+    return [f"--policy.{key}={value}" for key, value in sampler_overrides(text).items()]
+
+
+def evaluations(policy_type: str, model_dir: Path, here: Path, eval_args: list[str]) -> list[Evaluation]:
+    """The `lerobot-eval` runs of one model's sweep, one per sampler of `policy_type`."""
+    return [
+        Evaluation(
+            model_dir, here / "sweep" / text, [*eval_args, *flags(text)], here / "sweep" / f"{text}.log"
         )
-    return points
+        for text in SAMPLERS[policy_type]
+    ]
+
+
+def points(policy_type: str, model_dir: Path, here: Path) -> list[dict]:
+    """One point per sampler of `policy_type` once its evaluation is done: episode statistics, denoiser
+    calls and latency. Latency is measured here, one chunk after another, so run this alone."""
+    return [
+        {
+            "sampler": text,
+            **episode_stats(here / "sweep" / text),
+            **stream_cost(model_dir, overrides=sampler_overrides(text)),
+        }
+        for text in SAMPLERS[policy_type]
+    ]
 
 
 def plot(sweeps: dict[str, list[dict]], path: Path, title: str) -> None:

@@ -23,7 +23,7 @@ from pathlib import Path
 from .. import shipped_configs
 from ..chunk_cost import stream_cost
 from ..geometry import ChunkGeometry
-from ..lerobot_cli import evaluate, last_checkpoint, train, trained_steps
+from ..lerobot_cli import Evaluation, evaluate, evaluate_all, last_checkpoint, train, trained_steps
 from ..pusht.data import keypoints_dataset_args
 from ..pusht.evaluation import EVAL_SEED, OBS_TYPE, pusht_eval_args
 from ..robomimic.demonstrators import DEMONSTRATORS
@@ -217,10 +217,11 @@ def execute(
     eval_args: list[str],
     curve_every: int | None = None,
     echo: bool = True,
+    eval_jobs: int = 1,
 ) -> dict:
     """Train (or resume, or reuse) and evaluate one run, and with `curve_every` every K-step
-    checkpoint of it on the same episodes; returns its row. `echo=False` leaves the CLIs' output
-    in the run's log files only (runs in parallel)."""
+    checkpoint of it on the same episodes (`eval_jobs` at once); returns its row. `echo=False` leaves
+    the CLIs' output in the run's log files only (runs in parallel)."""
     model_root = output_dir / "runs" / run.model_run
     timing_file = model_root / "timing.json"
     timing = json.loads(timing_file.read_text()) if timing_file.exists() else {"train_wall_s": 0.0}
@@ -232,28 +233,54 @@ def execute(
         timing_file.write_text(json.dumps(timing))
     eval_args = eval_args + [f"--policy.{k}={v}" for k, v in run.eval_overrides.items()]
     here = run_dir(output_dir, run)
+    # the curve's last point is the run's own evaluation, done with the others
+    points = (
+        curve(model_root, here, eval_args, curve_every, run.steps, echo, eval_jobs) if curve_every else None
+    )
     evaluate(model_dir, here / "eval", eval_args, here / "eval.log", echo)
-    cost = stream_cost(model_dir, overrides=run.eval_overrides)
+    cost = stream_cost(model_dir, overrides=run.eval_overrides)  # alone: no evaluation runs now
     row = {"run": run.name, **episode_stats(here / "eval"), "steps": run.steps, **cost}
     row["train_wall_s"] = round(train_wall_s(model_root / "train.log", run.steps, timing["train_wall_s"]), 1)
     if curve_every:
-        row["curve"] = curve(model_root, here, eval_args, curve_every, run.steps, echo)
+        row["curve"] = points
     return row
 
 
 def curve(
-    model_root: Path, here: Path, eval_args: list[str], every: int, final_step: int, echo: bool = True
+    model_root: Path,
+    here: Path,
+    eval_args: list[str],
+    every: int,
+    final_step: int,
+    echo: bool = True,
+    jobs: int = 1,
 ) -> list[dict]:
-    """Every saved K-step checkpoint evaluated on the run's episodes (the last is the run's eval)."""
+    """Every saved K-step checkpoint evaluated on the run's episodes (the last is the run's eval),
+    `jobs` evaluations at once."""
+    steps = checkpoint_steps(model_root / "train", every)
+
+    def eval_dir(step: int) -> Path:
+        return here / "eval" if step == final_step else here / "curve" / f"{step:06d}"
+
+    evaluate_all(
+        [
+            Evaluation(
+                model_root / "train" / "checkpoints" / f"{step:06d}" / "pretrained_model",
+                eval_dir(step),
+                eval_args,
+                eval_dir(step).parent / f"{eval_dir(step).name}.log",
+            )
+            for step in steps
+        ],
+        jobs,
+        echo,
+    )
     marks = step_logs(model_root / "train.log", final_step)
     points = []
-    for step in checkpoint_steps(model_root / "train", every):
-        eval_dir = here / "eval" if step == final_step else here / "curve" / f"{step:06d}"
-        model_dir = model_root / "train" / "checkpoints" / f"{step:06d}" / "pretrained_model"
-        evaluate(model_dir, eval_dir, eval_args, eval_dir.parent / f"{eval_dir.name}.log", echo)
+    for step in steps:
         wall = wall_time_at(marks, step)
         points.append(
-            {"step": step, "train_wall_s": round(wall, 1) if wall else 0.0, **episode_stats(eval_dir)}
+            {"step": step, "train_wall_s": round(wall, 1) if wall else 0.0, **episode_stats(eval_dir(step))}
         )
     return points
 
@@ -381,6 +408,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "with many CPU cores: each run's DataLoader workers and torch threads count against the cores)",
     )
     parser.add_argument(
+        "--eval_jobs",
+        type=int,
+        default=1,
+        help="run this many lerobot-eval at once for the learning curves and the sweep (each uses one "
+        "core; 2 on a 2-core CPU when nothing trains beside them)",
+    )
+    parser.add_argument(
         "--curve_every",
         type=int,
         default=None,
@@ -428,8 +462,9 @@ def training_data(args: argparse.Namespace, output_dir: Path) -> list[str]:
 
 def run(args: argparse.Namespace) -> dict:
     budget_name, budget = resolve_budget(args)
-    if args.jobs < 1:
-        raise SystemExit(f"--jobs must be at least 1, got {args.jobs}.")
+    for flag in ("jobs", "eval_jobs"):
+        if getattr(args, flag) < 1:
+            raise SystemExit(f"--{flag} must be at least 1, got {getattr(args, flag)}.")
     default_dir = (
         f"quality_{args.task.lower()}_{budget_name}" if args.env == "robomimic" else f"quality_{budget_name}"
     )
@@ -471,7 +506,9 @@ def run(args: argparse.Namespace) -> dict:
     report |= {"sweep": previous["sweep"]} if "sweep" in previous else {}
 
     def execute_run(r: Run) -> dict:
-        return execute(r, output_dir, data_args, common, eval_args, args.curve_every, echo=args.jobs == 1)
+        return execute(
+            r, output_dir, data_args, common, eval_args, args.curve_every, args.jobs == 1, args.eval_jobs
+        )
 
     for row in run_in_parallel(selected, execute_run, args.jobs):
         rows[row["run"]] = row
@@ -484,7 +521,7 @@ def run(args: argparse.Namespace) -> dict:
             )
         print("\n".join(status(selected, output_dir)), flush=True)
     if args.sweep:
-        report["sweep"] = report.get("sweep", {}) | run_sweep(selected, output_dir, eval_args)
+        report["sweep"] = report.get("sweep", {}) | run_sweep(selected, output_dir, eval_args, args.eval_jobs)
         write_report(report, output_dir, budget)
         cost_sweep.plot(report["sweep"], output_dir / "cost.png", f"{task_label(args)}, budget {budget_name}")
     print((output_dir / "results.md").read_text())
@@ -507,16 +544,19 @@ def run_in_parallel(runs: list[Run], execute_run: Callable[[Run], dict], jobs: i
             yield from (f.result() for f in as_completed([pool.submit(execute_run, r) for r in stage]))
 
 
-def run_sweep(selected: list[Run], output_dir: Path, eval_args: list[str]) -> dict[str, list[dict]]:
-    """The comparison's final models at several samplers each (no retraining)."""
-    sweeps = {}
+def run_sweep(
+    selected: list[Run], output_dir: Path, eval_args: list[str], jobs: int = 1
+) -> dict[str, list[dict]]:
+    """The comparison's final models at several samplers each (no retraining): every evaluation,
+    `jobs` at once, then each model's points."""
+    models = {}
     for run in selected:
-        if run.name not in ("dp", "sdp_h2", "sdp_h4"):
-            continue
-        policy_type = "diffusion" if run.name == "dp" else "sdp"
-        model_dir = last_checkpoint(output_dir / "runs" / run.name / "train") / "pretrained_model"
-        sweeps[run.name] = cost_sweep.sweep(policy_type, model_dir, run_dir(output_dir, run), eval_args)
-    return sweeps
+        if run.name in ("dp", "sdp_h2", "sdp_h4"):
+            policy_type = "diffusion" if run.name == "dp" else "sdp"
+            model_dir = last_checkpoint(output_dir / "runs" / run.name / "train") / "pretrained_model"
+            models[run.name] = (policy_type, model_dir, run_dir(output_dir, run))
+    evaluate_all([e for m in models.values() for e in cost_sweep.evaluations(*m, eval_args)], jobs)
+    return {name: cost_sweep.points(*m) for name, m in models.items()}
 
 
 def sweep_markdown(sweeps: dict[str, list[dict]]) -> str:
