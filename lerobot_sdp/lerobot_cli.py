@@ -10,7 +10,7 @@ import os
 import signal
 import subprocess
 import sys
-from concurrent.futures import ThreadPoolExecutor, as_completed
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -152,5 +152,4 @@ def evaluate_all(evaluations: list[Evaluation], jobs: int = 1, echo: bool = True
         evaluate(e.model_dir, e.eval_dir, e.args, e.log, echo and jobs == 1)
 
     with ThreadPoolExecutor(max_workers=jobs) as pool:
-        for done in as_completed([pool.submit(run, e) for e in evaluations]):
-            done.result()  # a failed evaluation stops the benchmark with its error
+        list(pool.map(run, evaluations))  # a failed evaluation stops the benchmark with its error

@@ -258,19 +258,12 @@ def curve(
     """Every saved K-step checkpoint evaluated on the run's episodes (the last is the run's eval),
     `jobs` evaluations at once."""
     steps = checkpoint_steps(model_root / "train", every)
-
-    def eval_dir(step: int) -> Path:
-        return here / "eval" if step == final_step else here / "curve" / f"{step:06d}"
-
+    eval_dirs = {s: here / "eval" if s == final_step else here / "curve" / f"{s:06d}" for s in steps}
+    checkpoints = model_root / "train" / "checkpoints"
     evaluate_all(
         [
-            Evaluation(
-                model_root / "train" / "checkpoints" / f"{step:06d}" / "pretrained_model",
-                eval_dir(step),
-                eval_args,
-                eval_dir(step).parent / f"{eval_dir(step).name}.log",
-            )
-            for step in steps
+            Evaluation(checkpoints / f"{s:06d}" / "pretrained_model", d, eval_args, d.with_suffix(".log"))
+            for s, d in eval_dirs.items()
         ],
         jobs,
         echo,
@@ -280,7 +273,7 @@ def curve(
     for step in steps:
         wall = wall_time_at(marks, step)
         points.append(
-            {"step": step, "train_wall_s": round(wall, 1) if wall else 0.0, **episode_stats(eval_dir(step))}
+            {"step": step, "train_wall_s": round(wall, 1) if wall else 0.0, **episode_stats(eval_dirs[step])}
         )
     return points
 
