@@ -22,6 +22,7 @@ from lerobot_sdp.benchmarks.quality import (
     comparison_runs,
     horizon_control_runs,
     markdown,
+    only,
     resolve_budget,
     run_in_parallel,
 )
@@ -107,6 +108,20 @@ def test_ablations_share_one_model_for_the_primers():
         assert run.model_run == "scheme_cw80_const20" and run.eval_overrides == {"action_primer": primer}
     assert "--policy.noise_schemes.independent=0.67" in runs["scheme_ind67_lin33"].policy_args
     assert all(r.steps == BUDGETS["cpu"].ablation_steps for r in runs.values())
+
+
+def test_only_selects_runs_with_the_models_they_evaluate(tmp_path, capsys):
+    comparison = comparison_runs(BUDGETS["cpu"], "cpu")
+    assert [r.name for r in only(comparison, ["sdp_h4"])] == ["sdp_h4"]
+    assert [r.name for r in only(comparison, ["sdp_h4", "dp"])] == ["dp", "sdp_h4"]
+    assert only(comparison, None) == comparison
+    ablations = ablation_runs(BUDGETS["cpu"], "cpu")
+    assert [r.name for r in only(ablations, ["primer_zero"])] == ["scheme_cw80_const20", "primer_zero"]
+    with pytest.raises(SystemExit, match="--only sdp_h8: no such run .* dp, sdp_h2, sdp_h4"):
+        only(comparison, ["sdp_h8"])
+    cli.main(["quality", "--budget", "tiny", "--only", "sdp_h2", "--status", "--output_dir", str(tmp_path)])
+    printed = capsys.readouterr().out
+    assert [line.split()[0] for line in printed.splitlines() if line.strip()] == ["sdp_h2"]
 
 
 def test_parallel_runs_overlap_and_primers_wait_for_their_model():

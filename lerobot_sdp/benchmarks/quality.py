@@ -372,6 +372,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="horizon_control: DP at SDP h = 4's and h = 2's horizons; "
         "warmstart: SDP fine-tuned from the comparison's trained DP (run the comparison first)",
     )
+    parser.add_argument(
+        "--only",
+        nargs="+",
+        default=None,
+        metavar="RUN",
+        help="train and evaluate only these runs of the run set (e.g. `--only sdp_h4` to train one "
+        "policy longer in its own output directory); other rows already in results.json stay",
+    )
     parser.add_argument("--output_dir", type=Path, default=None, help="default: outputs/quality_<budget>")
     parser.add_argument(
         "--zarr", type=Path, default=None, help="Push-T zarr (default: $SDP_PUSHT_ZARR, ../shared/...)"
@@ -453,6 +461,21 @@ def training_data(args: argparse.Namespace, output_dir: Path) -> list[str]:
     return keypoints_dataset_args(args.zarr, output_dir / "data")
 
 
+def only(runs: list[Run], names: list[str] | None) -> list[Run]:
+    """The runs named by --only (all when it is not given), in the run set's order, with the runs
+    whose trained models they evaluate (`trains_as`): those train the model."""
+    if names is None:
+        return runs
+    unknown = sorted(set(names) - {r.name for r in runs})
+    if unknown:
+        raise SystemExit(
+            f"--only {' '.join(unknown)}: no such run in this run set; its runs are "
+            f"{', '.join(r.name for r in runs)} (choose another with --runs)."
+        )
+    wanted = set(names) | {r.trains_as for r in runs if r.name in names}
+    return [r for r in runs if r.name in wanted]
+
+
 def run(args: argparse.Namespace) -> dict:
     budget_name, budget = resolve_budget(args)
     for flag in ("jobs", "eval_jobs"):
@@ -473,9 +496,10 @@ def run(args: argparse.Namespace) -> dict:
             f"The warm-start runs start from the comparison's trained DP, and {dp_model(output_dir)} does "
             "not exist: run `--runs comparison` with this --output_dir first."
         )
-    selected = [
-        r for kind in (runs if args.runs == "all" else [args.runs]) for r in runs[kind](budget, args.device)
-    ]
+    selected = only(
+        [r for kind in (runs if args.runs == "all" else [args.runs]) for r in runs[kind](budget, args.device)],
+        args.only,
+    )
     print("\n".join(status(selected, output_dir)), flush=True)
     if args.status:
         return {}
