@@ -117,7 +117,7 @@ def test_only_selects_runs_with_the_models_they_evaluate(tmp_path, capsys):
     assert only(comparison, None) == comparison
     ablations = ablation_runs(BUDGETS["cpu"], "cpu")
     assert [r.name for r in only(ablations, ["primer_zero"])] == ["scheme_cw80_const20", "primer_zero"]
-    with pytest.raises(SystemExit, match="--only sdp_h8: no such run .* dp, sdp_h2, sdp_h4"):
+    with pytest.raises(SystemExit, match=r"--only sdp_h8: no such run .* dp, sdp_h2, sdp_h4"):
         only(comparison, ["sdp_h8"])
     cli.main(["quality", "--budget", "tiny", "--only", "sdp_h2", "--status", "--output_dir", str(tmp_path)])
     printed = capsys.readouterr().out

@@ -118,6 +118,23 @@ def test_seeding_is_reproducible(lift_env):
     assert not np.array_equal(first["environment_state"], other["environment_state"])
 
 
+def test_every_env_builds_the_same_scene_for_a_seed(lift_env):
+    """robosuite draws the cube's size when it builds the model: another env, built after other NumPy
+    draws, must still give the same scene for the same episode seed (recording and evaluation run in
+    different processes)."""
+    from lerobot_sdp.robomimic.env import RobomimicEnv
+
+    np.random.seed(12345)
+    other = RobomimicEnv("Lift", episode_length=5)
+    try:
+        first, _ = lift_env.reset(seed=7)
+        again, _ = other.reset(seed=7)
+    finally:
+        other.close()
+    np.testing.assert_array_equal(first["environment_state"], again["environment_state"])
+    np.testing.assert_array_equal(first["agent_pos"], again["agent_pos"])
+
+
 def test_truncates_at_episode_length(lift_env):
     lift_env.reset(seed=0)
     flags = [lift_env.step(np.zeros(7))[3] for _ in range(5)]

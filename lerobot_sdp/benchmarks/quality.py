@@ -496,10 +496,8 @@ def run(args: argparse.Namespace) -> dict:
             f"The warm-start runs start from the comparison's trained DP, and {dp_model(output_dir)} does "
             "not exist: run `--runs comparison` with this --output_dir first."
         )
-    selected = only(
-        [r for kind in (runs if args.runs == "all" else [args.runs]) for r in runs[kind](budget, args.device)],
-        args.only,
-    )
+    kinds = list(runs) if args.runs == "all" else [args.runs]
+    selected = only([r for kind in kinds for r in runs[kind](budget, args.device)], args.only)
     print("\n".join(status(selected, output_dir)), flush=True)
     if args.status:
         return {}

@@ -8,6 +8,8 @@ An episode terminates on the task's own `_check_success()` and is truncated at `
 """
 
 import logging
+from collections.abc import Iterator
+from contextlib import contextmanager
 from functools import partial
 from typing import ClassVar
 
@@ -28,6 +30,22 @@ except ModuleNotFoundError as err:
     ) from err
 
 logger = logging.getLogger(__name__)
+
+# robosuite draws parts of the MuJoCo model (Lift's cube size) from NumPy's global generator while it
+# builds the model, once per env since soft resets keep it. Building it under one fixed seed gives
+# every process the same model, so an episode seed is the same scene in every recording and evaluation.
+MODEL_SEED = 0
+
+
+@contextmanager
+def numpy_global_seed(seed: int) -> Iterator[None]:
+    """NumPy's global generator seeded for the block, its previous state restored afterwards."""
+    state = np.random.get_state()
+    np.random.seed(seed)
+    try:
+        yield
+    finally:
+        np.random.set_state(state)
 
 
 def controller_config() -> dict:
@@ -71,26 +89,27 @@ class RobomimicEnv(gym.Env):
         self.render_camera = render_camera
         self.render_size = render_size
         use_images = obs_type == "image"
-        self._env = robosuite.make(
-            self.task_spec.name,
-            robots=["Panda"] * self.task_spec.n_arms,
-            env_configuration=self.task_spec.env_configuration,
-            controller_configs=controller_config(),
-            control_freq=CONTROL_FREQ,
-            horizon=self._max_episode_steps,
-            ignore_done=True,  # this wrapper decides when an episode ends
-            reward_shaping=False,  # robomimic's sparse task reward
-            use_object_obs=True,
-            use_camera_obs=use_images,
-            camera_names=self.camera_names,
-            camera_heights=self.image_size,
-            camera_widths=self.image_size,
-            has_renderer=False,
-            # Low-dim envs open no GL context at all until render() asks for a video frame.
-            has_offscreen_renderer=use_images,
-            # Soft resets re-sample object placements without recompiling the MuJoCo model each episode.
-            hard_reset=False,
-        )
+        with numpy_global_seed(MODEL_SEED):
+            self._env = robosuite.make(
+                self.task_spec.name,
+                robots=["Panda"] * self.task_spec.n_arms,
+                env_configuration=self.task_spec.env_configuration,
+                controller_configs=controller_config(),
+                control_freq=CONTROL_FREQ,
+                horizon=self._max_episode_steps,
+                ignore_done=True,  # this wrapper decides when an episode ends
+                reward_shaping=False,  # robomimic's sparse task reward
+                use_object_obs=True,
+                use_camera_obs=use_images,
+                camera_names=self.camera_names,
+                camera_heights=self.image_size,
+                camera_widths=self.image_size,
+                has_renderer=False,
+                # Low-dim envs open no GL context at all until render() asks for a video frame.
+                has_offscreen_renderer=use_images,
+                # Soft resets re-sample object placements without recompiling the MuJoCo model each episode.
+                hard_reset=False,
+            )
         self.observation_space = self._observation_space()
         low, high = self._env.action_spec
         self.action_space = spaces.Box(low.astype(np.float32), high.astype(np.float32), dtype=np.float32)
