@@ -8,8 +8,6 @@ An episode terminates on the task's own `_check_success()` and is truncated at `
 """
 
 import logging
-from collections.abc import Iterator
-from contextlib import contextmanager
 from functools import partial
 from typing import ClassVar
 
@@ -17,6 +15,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 from lerobot.envs.utils import freeze_after_episode_end
+from lerobot.utils.random_utils import seeded_context
 
 from .tasks import CONTROL_FREQ, check_obs_type, get_task
 
@@ -35,17 +34,6 @@ logger = logging.getLogger(__name__)
 # builds the model, once per env since soft resets keep it. Building it under one fixed seed gives
 # every process the same model, so an episode seed is the same scene in every recording and evaluation.
 MODEL_SEED = 0
-
-
-@contextmanager
-def numpy_global_seed(seed: int) -> Iterator[None]:
-    """NumPy's global generator seeded for the block, its previous state restored afterwards."""
-    state = np.random.get_state()
-    np.random.seed(seed)
-    try:
-        yield
-    finally:
-        np.random.set_state(state)
 
 
 def controller_config() -> dict:
@@ -89,7 +77,7 @@ class RobomimicEnv(gym.Env):
         self.render_camera = render_camera
         self.render_size = render_size
         use_images = obs_type == "image"
-        with numpy_global_seed(MODEL_SEED):
+        with seeded_context(MODEL_SEED):  # LeRobot's: seeds, then restores the caller's random state
             self._env = robosuite.make(
                 self.task_spec.name,
                 robots=["Panda"] * self.task_spec.n_arms,
