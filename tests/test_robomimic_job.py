@@ -26,6 +26,18 @@ def test_each_task_trains_from_its_shipped_config():
         job.parse_args(["--num_demos", "0"])
 
 
+def test_a_moved_recording_is_reused_from_where_it_is_now(tmp_path):
+    """The statistics name the folder the demonstrations were recorded into; reused from a copied
+    output folder, training must read the copy, not the original (which may be gone)."""
+    old, new = tmp_path / "old" / "data", tmp_path / "new" / "data"
+    new.mkdir(parents=True)
+    stats = {"successes": 2, "repo_id": "local/scripted_lift", "root": str(old / "demos")}
+    (new / job.RECORDING).write_text(json.dumps(stats))
+    reused = job.record_demonstrations("Lift", 2, new)
+    assert reused["root"] == str(new / "demos") and reused["successes"] == 2
+    assert f"--dataset.root={new / 'demos'}" in job.dataset_args(reused)
+
+
 @pytest.mark.slow
 def test_main_job_records_trains_evaluates_and_resumes(tmp_path, monkeypatch, capsys):
     config_path = tmp_path / "tiny.json"

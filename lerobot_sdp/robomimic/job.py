@@ -52,7 +52,8 @@ def record_demonstrations(task: str, num_demos: int, data_dir: Path, demo_seed: 
     root = data_dir / "demos"
     if stats is not None:
         print(f"[data] reusing {root} ({stats['successes']} demonstrations)", flush=True)
-        return stats
+        # where the recording is now: an output folder moved or copied since still trains on its own data
+        return stats | {"root": str(root)}
     print(f"[data] recording {num_demos} scripted {task} demonstrations -> {root}", flush=True)
     # A recording cut short leaves a partial dataset and no statistics: it is recorded again.
     start = time.monotonic()
