@@ -48,24 +48,20 @@ def recorded(data_dir: Path) -> dict | None:
 def record_demonstrations(task: str, num_demos: int, data_dir: Path, demo_seed: int = DEFAULT_SEED) -> dict:
     """Record the demonstrations into DATA_DIR/demos (or reuse a finished recording); their
     statistics, with the dataset's `repo_id` and `root`."""
-    stats = recorded(data_dir)
     root = data_dir / "demos"
+    stats = recorded(data_dir)
     if stats is not None:
         print(f"[data] reusing {root} ({stats['successes']} demonstrations)", flush=True)
-        # where the recording is now: an output folder moved or copied since still trains on its own data
-        return stats | {"root": str(root)}
-    print(f"[data] recording {num_demos} scripted {task} demonstrations -> {root}", flush=True)
-    # A recording cut short leaves a partial dataset and no statistics: it is recorded again.
-    start = time.monotonic()
-    stats = record(num_demos, root, task, seed=demo_seed, overwrite=True)
-    stats |= {
-        "repo_id": default_repo_id(task),
-        "root": str(root),
-        "seconds": round(time.monotonic() - start, 1),
-    }
-    print(f"[data] {describe(task, stats, stats['seconds'], root)}", flush=True)
-    (data_dir / RECORDING).write_text(json.dumps(stats, indent=2))
-    return stats
+    else:
+        print(f"[data] recording {num_demos} scripted {task} demonstrations -> {root}", flush=True)
+        # A recording cut short leaves a partial dataset and no statistics: it is recorded again.
+        start = time.monotonic()
+        stats = record(num_demos, root, task, seed=demo_seed, overwrite=True)
+        stats |= {"repo_id": default_repo_id(task), "seconds": round(time.monotonic() - start, 1)}
+        print(f"[data] {describe(task, stats, stats['seconds'], root)}", flush=True)
+        (data_dir / RECORDING).write_text(json.dumps(stats, indent=2))
+    # derived, not stored: an output folder copied or moved since trains on its own demonstrations
+    return stats | {"root": str(root)}
 
 
 def dataset_args(stats: dict) -> list[str]:
