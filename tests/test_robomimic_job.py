@@ -27,8 +27,9 @@ def test_each_task_trains_from_its_shipped_config():
 
 
 def test_a_moved_recording_is_reused_from_where_it_is_now(tmp_path):
-    """The statistics name the folder the demonstrations were recorded into; reused from a copied
-    output folder, training must read the copy, not the original (which may be gone)."""
+    """A recording.json written before the root was derived names the folder it was recorded into;
+    reused from a copied output folder, training must read the copy, not the original (which may be
+    gone)."""
     old, new = tmp_path / "old" / "data", tmp_path / "new" / "data"
     new.mkdir(parents=True)
     stats = {"successes": 2, "repo_id": "local/scripted_lift", "root": str(old / "demos")}
