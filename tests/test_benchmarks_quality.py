@@ -1,8 +1,10 @@
 """The quality benchmark's plumbing: two training steps, two episodes, through the real CLIs."""
 
+import argparse
 import json
 import threading
 import time
+from pathlib import Path
 
 import pytest
 from sdp_test_utils import make_tiny_pusht_dataset
@@ -19,12 +21,16 @@ from lerobot_sdp.benchmarks.quality import (
     BUDGETS,
     PAPER_SCHEMES,
     ablation_runs,
+    add_arguments,
     comparison_runs,
+    default_output_dir,
     horizon_control_runs,
     markdown,
     only,
     resolve_budget,
     run_in_parallel,
+    warmstart_runs,
+    with_step_conditioning,
 )
 
 
@@ -119,6 +125,29 @@ def test_only_selects_runs_with_the_models_they_evaluate(tmp_path, capsys):
     cli.main(["quality", "--budget", "tiny", "--only", "sdp_h2", "--status", "--output_dir", str(tmp_path)])
     printed = capsys.readouterr().out
     assert [line.split()[0] for line in printed.splitlines() if line.strip()] == ["sdp_h2"]
+
+
+def test_step_conditioning_reaches_the_sdp_runs_only(tmp_path):
+    runs = comparison_runs(BUDGETS["cpu"], "cpu") + warmstart_runs(BUDGETS["cpu"], "cpu", tmp_path)
+    film = {r.name: r for r in with_step_conditioning(runs, "film_per_slot")}
+    flag = "--policy.step_conditioning=film_per_slot"
+    for name in ("sdp_h2", "sdp_h4", "warm_flatten", "scratch_flatten_short"):
+        assert film[name].policy_args.count(flag) == 1
+    assert flag not in film["dp"].policy_args
+    flat = {r.name: r for r in with_step_conditioning(runs, "flatten")}
+    assert flag in flat["warm_film"].policy_args  # a run that chose its encoder keeps it
+    assert "--policy.step_conditioning=flatten" not in flat["warm_film"].policy_args
+    assert with_step_conditioning(runs, None) == runs
+    with pytest.raises(SystemExit):
+        cli.main(["quality", "--step_conditioning", "film", "--status"])
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    film_can = ["--env", "robomimic", "--task", "PickPlaceCan", "--step_conditioning", "film_per_slot"]
+    args = parser.parse_args(film_can)
+    assert default_output_dir(args, "robomimic_cpu_24000steps") == Path(
+        "outputs/quality_pickplacecan_robomimic_cpu_24000steps_film_per_slot"
+    )
+    assert default_output_dir(parser.parse_args([]), "cpu") == Path("outputs/quality_cpu")
 
 
 def test_parallel_runs_overlap_and_primers_wait_for_their_model():

@@ -22,6 +22,7 @@ from pathlib import Path
 
 from .. import shipped_configs
 from ..chunk_cost import stream_cost
+from ..configuration_sdp import STEP_CONDITIONINGS
 from ..geometry import ChunkGeometry
 from ..lerobot_cli import Evaluation, evaluate, evaluate_all, last_checkpoint, train, trained_steps
 from ..pusht.data import keypoints_dataset_args
@@ -198,6 +199,22 @@ def warmstart_runs(budget: Budget, device: str, dp_model: Path) -> list[Run]:
         Run("scratch_flatten_short", base, steps),
         Run("scratch_film_short", base + film, steps),
     ]
+
+
+def with_step_conditioning(runs: list[Run], choice: str | None) -> list[Run]:
+    """The SDP runs trained with `--policy.step_conditioning=CHOICE` (those that set none already);
+    DP's runs and the runs that evaluate another's model are unchanged."""
+    if choice is None:
+        return runs
+    flag = f"--policy.step_conditioning={choice}"
+
+    def conditioned(run: Run) -> Run:
+        sdp = "--policy.type=sdp" in run.policy_args
+        if not sdp or any(a.startswith("--policy.step_conditioning=") for a in run.policy_args):
+            return run
+        return replace(run, policy_args=[*run.policy_args, flag])
+
+    return [conditioned(r) for r in runs]
 
 
 def dp_model(output_dir: Path) -> Path:
@@ -416,6 +433,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "core; 2 on a 2-core CPU when nothing trains beside them)",
     )
     parser.add_argument(
+        "--step_conditioning",
+        choices=STEP_CONDITIONINGS,
+        default=None,
+        help="train SDP with this step encoder instead of the config's default (flatten, the paper's); "
+        "the default output directory gets its name as a suffix",
+    )
+    parser.add_argument(
         "--curve_every",
         type=int,
         default=None,
@@ -476,15 +500,19 @@ def only(runs: list[Run], names: list[str] | None) -> list[Run]:
     return [r for r in runs if r.name in wanted]
 
 
+def default_output_dir(args: argparse.Namespace, budget_name: str) -> Path:
+    """outputs/quality_[TASK_]BUDGET[_STEP_CONDITIONING]: one folder per comparison."""
+    task = f"{args.task.lower()}_" if args.env == "robomimic" else ""
+    conditioning = f"_{args.step_conditioning}" if args.step_conditioning else ""
+    return Path("outputs") / f"quality_{task}{budget_name}{conditioning}"
+
+
 def run(args: argparse.Namespace) -> dict:
     budget_name, budget = resolve_budget(args)
     for flag in ("jobs", "eval_jobs"):
         if getattr(args, flag) < 1:
             raise SystemExit(f"--{flag} must be at least 1, got {getattr(args, flag)}.")
-    default_dir = (
-        f"quality_{args.task.lower()}_{budget_name}" if args.env == "robomimic" else f"quality_{budget_name}"
-    )
-    output_dir = args.output_dir or Path("outputs") / default_dir
+    output_dir = args.output_dir or default_output_dir(args, budget_name)
     runs = {
         "comparison": comparison_runs,
         "horizon_control": horizon_control_runs,
@@ -497,7 +525,8 @@ def run(args: argparse.Namespace) -> dict:
             "not exist: run `--runs comparison` with this --output_dir first."
         )
     kinds = list(runs) if args.runs == "all" else [args.runs]
-    selected = only([r for kind in kinds for r in runs[kind](budget, args.device)], args.only)
+    every_run = [r for kind in kinds for r in runs[kind](budget, args.device)]
+    selected = only(with_step_conditioning(every_run, args.step_conditioning), args.only)
     print("\n".join(status(selected, output_dir)), flush=True)
     if args.status:
         return {}
