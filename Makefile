@@ -21,8 +21,11 @@ PYTEST = HF_HUB_OFFLINE=1 WANDB_MODE=disabled MUJOCO_GL=$${MUJOCO_GL:-egl} .venv
 # pytest exits 5 when it collected no test: that must fail, not pass as green.
 NO_TESTS_FAILS = rc=$$?; if [ $$rc -eq 5 ]; then echo "error: pytest collected no tests" >&2; exit 1; fi; exit $$rc
 
+# The suite runs on TEST_JOBS pytest-xdist workers (TEST_JOBS=0: in this process), one torch thread
+# each: two workers fill a 2-core CPU, and more threads than cores slow every test down.
+TEST_JOBS ?= 2
 test: setup lint
-	$(PYTEST) $(PYTEST_ARGS); $(NO_TESTS_FAILS)
+	OMP_NUM_THREADS=$${OMP_NUM_THREADS:-1} $(PYTEST) -n $(TEST_JOBS) $(PYTEST_ARGS); $(NO_TESTS_FAILS)
 
 # The edit loop: the algorithm core, the policy and the package's layers, no end-to-end CLI run.
 FAST_TESTS = tests/test_buffer*.py tests/test_geometry.py tests/test_schedule.py tests/test_noise_schemes.py \

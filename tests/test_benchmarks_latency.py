@@ -18,10 +18,14 @@ BATCH_SIZES = [1, 3]
 
 def run_bench(tmp_path, *extra: str) -> dict:
     threads = torch.get_num_threads()
-    # One thread: on a loaded CI machine two OpenMP threads can be several times slower.
-    argv = ["latency", "--quick", "--device", "cpu", "--steps", "2", "--num_threads", "1"]
-    cli.main([*argv, "--output_dir", str(tmp_path), *extra])
-    assert torch.get_num_threads() == threads  # an in-process run leaves the caller's setting alone
+    torch.set_num_threads(3)  # not the run's 1 (the suite itself may run on one thread)
+    try:
+        # One thread: on a loaded CI machine two OpenMP threads can be several times slower.
+        argv = ["latency", "--quick", "--device", "cpu", "--steps", "2", "--num_threads", "1"]
+        cli.main([*argv, "--output_dir", str(tmp_path), *extra])
+        assert torch.get_num_threads() == 3  # an in-process run leaves the caller's setting alone
+    finally:
+        torch.set_num_threads(threads)
     return json.loads((tmp_path / "latency.json").read_text())
 
 
