@@ -28,6 +28,7 @@ def lerobot_bin(name: str) -> str:
 # beside it, data loading and the update each get a core of a small machine, and no OpenMP pool
 # spin-waits for a core another process holds (docs/benchmarks.md, "Training throughput").
 THREAD_DEFAULTS = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+CHILD_GRACE_S = 30.0  # how long a child gets to stop after each signal (`end_child`)
 
 
 def subprocess_env() -> dict[str, str]:
@@ -52,12 +53,32 @@ def run_logged(cmd: list[str], log: Path, echo: bool = True) -> None:
         log.open("a") as f,
         subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env) as proc,
     ):
-        for line in proc.stdout:
-            if echo:
-                sys.stdout.write(line)
-            f.write(line)
+        try:
+            for line in proc.stdout:
+                if echo:
+                    sys.stdout.write(line)
+                f.write(line)
+        except BaseException as error:
+            # this process stops waiting (an error, Ctrl-C, a test's time limit): the child must not run
+            # on unwatched, nor hold this process in Popen's exit, which waits for it
+            end_child(proc, interrupted=isinstance(error, KeyboardInterrupt))
+            raise
     if proc.returncode != 0:
         raise CLIError(f"{Path(cmd[0]).name} failed (exit {proc.returncode}); see {log}")
+
+
+def end_child(proc: subprocess.Popen, interrupted: bool = False, grace_s: float = CHILD_GRACE_S) -> None:
+    """Stop a child nobody waits for any more: SIGTERM (torchrun passes it on to its ranks), then
+    SIGKILL, `grace_s` apart. After Ctrl-C, which reached the child too, it first gets `grace_s` to
+    stop by itself."""
+    for send in ([None] if interrupted else []) + [proc.terminate, proc.kill]:
+        if send is not None:
+            send()
+        try:
+            proc.wait(grace_s)
+            return
+        except subprocess.TimeoutExpired:
+            continue
 
 
 def last_checkpoint(train_dir: Path) -> Path:

@@ -67,7 +67,15 @@ def draws_on_two_ranks(tmp_path: Path, run: int) -> dict:
     script.write_text(RANK_DRAWS)
     out = tmp_path / f"draws{run}"
     out.mkdir()
-    cmd = [str(BIN / "torchrun"), "--nproc_per_node=2", str(script), str(Path(__file__).parent), str(out)]
+    # --standalone: a free port, not 29500 for every run (two runs may share the machine under xdist)
+    cmd = [
+        str(BIN / "torchrun"),
+        "--standalone",
+        "--nproc_per_node=2",
+        str(script),
+        str(Path(__file__).parent),
+        str(out),
+    ]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -112,6 +120,7 @@ def test_two_processes_train_save_once_and_average_once_per_step(tmp_path):
     steps = 3
     cmd = [
         str(BIN / "torchrun"),
+        "--standalone",
         "--nproc_per_node=2",
         "-m",
         "lerobot.scripts.lerobot_train",

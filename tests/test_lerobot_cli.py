@@ -73,3 +73,35 @@ def test_evaluate_all_runs_jobs_at_once_and_skips_finished_ones(tmp_path, monkey
         [lerobot_cli.Evaluation(tmp_path / "m", tmp_path / n, [], tmp_path / "l") for n in "xy"]
     )
     assert peak[0] == 1  # one at a time by default
+
+
+def test_a_command_left_by_an_error_is_stopped_not_waited_for(tmp_path):
+    """An exception while the output is read (a test's time limit, a failing caller) ends the child:
+    without that, Popen's exit would wait for it (here 60 s) and a hung child would hold the caller."""
+    import os
+    import signal
+
+    from lerobot_sdp.lerobot_cli import run_logged
+
+    def limit(*_):
+        raise TimeoutError("the caller's time limit")
+
+    child = "import os, time; print(os.getpid(), flush=True); time.sleep(60)"
+    log = tmp_path / "child.log"
+    previous = signal.signal(signal.SIGALRM, limit)
+    signal.setitimer(signal.ITIMER_REAL, 2.0)
+    start = time.monotonic()
+    try:
+        run_logged([sys.executable, "-c", child], log, echo=False)
+    except TimeoutError:
+        pass
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+    assert time.monotonic() - start < 20, "the caller waited for the child"
+    pid = int(log.read_text().split()[0])
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return
+    raise AssertionError(f"the child {pid} still runs")
