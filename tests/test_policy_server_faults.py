@@ -23,6 +23,7 @@ from test_protocol_pickle import WritesMarker
 
 RECEIVE_TIMEOUT_S = 1.0
 SESSION_TIMEOUT_S = 2.0
+FPS = 10
 CALLS_PER_CLIENT = 3
 
 
@@ -80,7 +81,7 @@ def served(server_mod, tmp_path):
     config = server_mod.SDPPolicyServerConfig(
         host="127.0.0.1",
         port=free_port(),
-        fps=10,
+        fps=FPS,
         obs_queue_timeout=0.3,
         session_timeout_s=SESSION_TIMEOUT_S,
         receive_timeout_s=RECEIVE_TIMEOUT_S,
@@ -103,11 +104,14 @@ def served(server_mod, tmp_path):
 
 
 def keeps_acting(robot, fault):
-    """Run `fault`, then check the good client's robot acted during it and after it."""
-    before = robot.actions_sent
+    """Run `fault`, then check the good client's robot acted during it (when it outlasts a few
+    ticks) and after it. A fault shorter than that can fall between two actions however well the
+    server serves; the run's longest gap between actions, checked at the end, covers those."""
+    before, start = robot.actions_sent, time.monotonic()
     result = fault()
-    reached = robot.actions_sent
-    assert reached > before, "the good client got no action during the fault"
+    reached, lasted_s = robot.actions_sent, time.monotonic() - start
+    if lasted_s > 3 / FPS:
+        assert reached > before, f"the good client got no action during a {lasted_s:.2f} s fault"
     wait_for(lambda: robot.actions_sent >= reached + 3, timeout=10)
     return result
 
