@@ -23,7 +23,6 @@ from test_protocol_pickle import WritesMarker
 
 RECEIVE_TIMEOUT_S = 1.0
 SESSION_TIMEOUT_S = 2.0
-FPS = 10
 CALLS_PER_CLIENT = 3
 
 
@@ -81,7 +80,7 @@ def served(server_mod, tmp_path):
     config = server_mod.SDPPolicyServerConfig(
         host="127.0.0.1",
         port=free_port(),
-        fps=FPS,
+        fps=10,
         obs_queue_timeout=0.3,
         session_timeout_s=SESSION_TIMEOUT_S,
         receive_timeout_s=RECEIVE_TIMEOUT_S,
@@ -110,7 +109,7 @@ def keeps_acting(robot, fault):
     before, start = robot.actions_sent, time.monotonic()
     result = fault()
     reached, lasted_s = robot.actions_sent, time.monotonic() - start
-    if lasted_s > 3 / FPS:
+    if lasted_s > 3 / robot.config.fps:
         assert reached > before, f"the good client got no action during a {lasted_s:.2f} s fault"
     wait_for(lambda: robot.actions_sent >= reached + 3, timeout=10)
     return result
