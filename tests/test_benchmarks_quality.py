@@ -84,6 +84,16 @@ def test_tiny_comparison_runs_resumes_and_reports(tmp_path, capsys):
     cli.main([*argv, "--status"])
     out = capsys.readouterr().out
     assert out.count("evaluated") == 2
+    # the same model on other episodes: not retrained, evaluated and reported beside the default ones
+    train_log = (tmp_path / "q" / "runs" / "dp" / "train.log").read_text()
+    cli.main([*common, "--runs", "comparison", "--only", "dp", "--eval_seed", "7"])
+    held_out = json.loads((tmp_path / "q" / "eval_seed7" / "results.json").read_text())
+    assert held_out["eval_seed"] == 7 and set(held_out["rows"]) == {"dp"}
+    assert (tmp_path / "q" / "runs" / "dp" / "train.log").read_text() == train_log
+    for eval_log in ("eval.log", "curve/000001.log"):
+        log = (tmp_path / "q" / "runs" / "dp" / "eval_seed7" / eval_log).read_text()
+        assert "'seed': 7," in log and "'seed': 100000," not in log, eval_log
+    assert json.loads((tmp_path / "q" / "results.json").read_text())["rows"] == rows
     # warm starts from the trained DP: fine-tuned runs log what they copied, scratch runs copy nothing
     cli.main([*common, "--runs", "warmstart", "--only", "warm_flatten", "warm_film", "scratch_film_short"])
     rows = json.loads((tmp_path / "q" / "results.json").read_text())["rows"]
@@ -96,6 +106,11 @@ def test_tiny_comparison_runs_resumes_and_reports(tmp_path, capsys):
     # another run set in the same folder keeps the comparison's sweep
     assert json.loads((tmp_path / "q" / "results.json").read_text())["sweep"] == sweep
     assert "### Quality against cost" in (tmp_path / "q" / "results.md").read_text()
+
+
+def test_eval_seed_must_be_a_seed(tmp_path):
+    with pytest.raises(SystemExit, match="--eval_seed must be at least 0"):
+        cli.main(["quality", "--budget", "tiny", "--eval_seed", "-1", "--output_dir", str(tmp_path)])
 
 
 def test_warm_start_runs_need_the_trained_dp(tmp_path):

@@ -8,7 +8,9 @@ size, steps, learning-rate schedule and seed for every policy. SDP is trained wi
 because LeRobot's Diffusion Policy has none: the two differ only in how they corrupt and sample.
 
 Runs resume where they stopped (rerun the same command); `--status` prints where each run stands.
-Results: OUTPUT_DIR/results.json and OUTPUT_DIR/results.md.
+Results: OUTPUT_DIR/results.json and OUTPUT_DIR/results.md. `--eval_seed N` evaluates the same trained
+models on the episodes from seed N on (held-out episodes, for a configuration chosen on the default
+ones): those evaluations and their report go to `eval_seedN/` folders beside the default ones.
 """
 
 import argparse
@@ -222,8 +224,9 @@ def dp_model(output_dir: Path) -> Path:
     return output_dir / "runs" / "dp" / "train" / "checkpoints" / "last" / "pretrained_model"
 
 
-def run_dir(output_dir: Path, run: Run) -> Path:
-    return output_dir / "runs" / run.name
+def run_dir(output_dir: Path, run: Run, seed_dir: str = "") -> Path:
+    """Where a run's evaluations go: its folder, or its `eval_seedN` subfolder for other episodes."""
+    return output_dir / "runs" / run.name / seed_dir
 
 
 def execute(
@@ -235,10 +238,12 @@ def execute(
     curve_every: int | None = None,
     echo: bool = True,
     eval_jobs: int = 1,
+    seed_dir: str = "",
 ) -> dict:
     """Train (or resume, or reuse) and evaluate one run, and with `curve_every` every K-step
     checkpoint of it on the same episodes (`eval_jobs` at once); returns its row. `echo=False` leaves
-    the CLIs' output in the run's log files only (runs in parallel)."""
+    the CLIs' output in the run's log files only (runs in parallel); `seed_dir` is the evaluations'
+    subfolder (`run_dir`)."""
     model_root = output_dir / "runs" / run.model_run
     timing_file = model_root / "timing.json"
     timing = json.loads(timing_file.read_text()) if timing_file.exists() else {"train_wall_s": 0.0}
@@ -249,7 +254,7 @@ def execute(
         timing["train_wall_s"] += time.monotonic() - t0
         timing_file.write_text(json.dumps(timing))
     eval_args = eval_args + [f"--policy.{k}={v}" for k, v in run.eval_overrides.items()]
-    here = run_dir(output_dir, run)
+    here = run_dir(output_dir, run, seed_dir)
     # the curve's last point is the run's own evaluation, done with the others
     points = (
         curve(model_root, here, eval_args, curve_every, run.steps, echo, eval_jobs) if curve_every else None
@@ -295,11 +300,11 @@ def curve(
     return points
 
 
-def status(runs: list[Run], output_dir: Path) -> list[str]:
+def status(runs: list[Run], output_dir: Path, seed_dir: str = "") -> list[str]:
     lines = []
     for run in runs:
         done = trained_steps(output_dir / "runs" / run.model_run / "train")
-        evaluated = (run_dir(output_dir, run) / "eval" / "eval_info.json").exists()
+        evaluated = (run_dir(output_dir, run, seed_dir) / "eval" / "eval_info.json").exists()
         state = (
             "evaluated" if evaluated else ("trained" if done >= run.steps else f"training {done}/{run.steps}")
         )
@@ -433,6 +438,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "core; 2 on a 2-core CPU when nothing trains beside them)",
     )
     parser.add_argument(
+        "--eval_seed",
+        type=int,
+        default=None,
+        help="evaluate on the episodes from this seed on (default: the task's, 1000 for robomimic, "
+        "100000 for Push-T); the trained models are reused, the evaluations and report go to "
+        "OUTPUT_DIR/eval_seedN and runs/RUN/eval_seedN",
+    )
+    parser.add_argument(
         "--step_conditioning",
         choices=STEP_CONDITIONINGS,
         default=None,
@@ -462,14 +475,19 @@ def task_label(args: argparse.Namespace) -> str:
     return f"robomimic {args.task} (low-dim)" if args.env == "robomimic" else "Push-T keypoints"
 
 
-def evaluation(args: argparse.Namespace, budget: Budget) -> tuple[int, list[str]]:
-    """The first episode seed and lerobot-eval's flags, the same for every run and sampler."""
+def evaluation(args: argparse.Namespace, budget: Budget) -> tuple[int, list[str], str]:
+    """The first episode seed, lerobot-eval's flags (the same for every run and sampler) and the
+    evaluations' subfolder: none on the task's own seed, `eval_seedN` on another."""
+    default = ROBOMIMIC_EVAL_SEED if args.env == "robomimic" else EVAL_SEED
+    seed = default if args.eval_seed is None else args.eval_seed
+    if seed < 0:
+        raise SystemExit(f"--eval_seed must be at least 0 (episode i starts from seed N + i), got {seed}.")
+    n, length = budget.n_episodes, budget.episode_length
     if args.env == "robomimic":
-        n, length = budget.n_episodes, budget.episode_length
-        return ROBOMIMIC_EVAL_SEED, robomimic_eval_args(args.task, n, args.device, length)
-    return EVAL_SEED, pusht_eval_args(
-        OBS_TYPE, budget.n_episodes, EVAL_SEED, args.device, budget.episode_length
-    )
+        eval_args = robomimic_eval_args(args.task, n, args.device, length, seed)
+    else:
+        eval_args = pusht_eval_args(OBS_TYPE, n, seed, args.device, length)
+    return seed, eval_args, "" if seed == default else f"eval_seed{seed}"
 
 
 def training_data(args: argparse.Namespace, output_dir: Path) -> list[str]:
@@ -527,11 +545,11 @@ def run(args: argparse.Namespace) -> dict:
     kinds = list(runs) if args.runs == "all" else [args.runs]
     every_run = [r for kind in kinds for r in runs[kind](budget, args.device)]
     selected = only(with_step_conditioning(every_run, args.step_conditioning), args.only)
-    print("\n".join(status(selected, output_dir)), flush=True)
+    eval_seed, eval_args, seed_dir = evaluation(args, budget)
+    print("\n".join(status(selected, output_dir, seed_dir)), flush=True)
     if args.status:
         return {}
     data_args = training_data(args, output_dir)
-    eval_seed, eval_args = evaluation(args, budget)
     common = [
         f"--batch_size={budget.batch_size}",
         "--seed=1000",
@@ -541,7 +559,9 @@ def run(args: argparse.Namespace) -> dict:
         f"--save_freq={math.gcd(args.curve_every or 0, max(1, min(budget.steps, 2000)))}",
         "--log_freq=200",
     ]
-    results_file = output_dir / "results.json"
+    report_dir = output_dir / seed_dir
+    report_dir.mkdir(parents=True, exist_ok=True)
+    results_file = report_dir / "results.json"
     # rows and sweeps of other run sets in this folder stay in the report
     previous = json.loads(results_file.read_text()) if results_file.exists() else {}
     rows = previous.get("rows", {})
@@ -551,33 +571,44 @@ def run(args: argparse.Namespace) -> dict:
 
     def execute_run(r: Run) -> dict:
         return execute(
-            r, output_dir, data_args, common, eval_args, args.curve_every, args.jobs == 1, args.eval_jobs
+            r,
+            output_dir,
+            data_args,
+            common,
+            eval_args,
+            args.curve_every,
+            args.jobs == 1,
+            args.eval_jobs,
+            seed_dir,
         )
 
+    episodes = f"{budget.n_episodes} episodes from seed {eval_seed}"
     for row in run_in_parallel(selected, execute_run, args.jobs):
         rows[row["run"]] = row
-        write_report(report, output_dir, budget)
+        write_report(report, report_dir, budget)
         if args.curve_every:
             plot(
                 rows,
-                output_dir / "curves.png",
-                f"{task_label(args)}, budget {budget_name}, {budget.n_episodes} episodes per point",
+                report_dir / "curves.png",
+                f"{task_label(args)}, budget {budget_name}, {episodes} per point",
             )
-        print("\n".join(status(selected, output_dir)), flush=True)
+        print("\n".join(status(selected, output_dir, seed_dir)), flush=True)
     if args.sweep:
-        report["sweep"] = report.get("sweep", {}) | run_sweep(selected, output_dir, eval_args, args.eval_jobs)
-        write_report(report, output_dir, budget)
-        cost_sweep.plot(report["sweep"], output_dir / "cost.png", f"{task_label(args)}, budget {budget_name}")
-    print((output_dir / "results.md").read_text())
+        sweep = run_sweep(selected, output_dir, eval_args, args.eval_jobs, seed_dir)
+        report["sweep"] = report.get("sweep", {}) | sweep
+        write_report(report, report_dir, budget)
+        title = f"{task_label(args)}, budget {budget_name}, {episodes}"
+        cost_sweep.plot(report["sweep"], report_dir / "cost.png", title)
+    print((report_dir / "results.md").read_text())
     return report
 
 
-def write_report(report: dict, output_dir: Path, budget: Budget) -> None:
-    """OUTPUT_DIR/results.json and its tables, results.md."""
-    write_json(output_dir / "results.json", report)
+def write_report(report: dict, report_dir: Path, budget: Budget) -> None:
+    """REPORT_DIR/results.json and its tables, results.md."""
+    write_json(report_dir / "results.json", report)
     text = markdown(report["rows"], report["budget"], budget)
     text += sweep_markdown(report["sweep"]) if "sweep" in report else ""
-    (output_dir / "results.md").write_text(text)
+    (report_dir / "results.md").write_text(text)
 
 
 def run_in_parallel(runs: list[Run], execute_run: Callable[[Run], dict], jobs: int) -> Iterator[dict]:
@@ -589,7 +620,7 @@ def run_in_parallel(runs: list[Run], execute_run: Callable[[Run], dict], jobs: i
 
 
 def run_sweep(
-    selected: list[Run], output_dir: Path, eval_args: list[str], jobs: int = 1
+    selected: list[Run], output_dir: Path, eval_args: list[str], jobs: int = 1, seed_dir: str = ""
 ) -> dict[str, list[dict]]:
     """The comparison's final models at several samplers each (no retraining): every evaluation,
     `jobs` at once, then each model's points."""
@@ -598,7 +629,7 @@ def run_sweep(
         if run.name in ("dp", "sdp_h2", "sdp_h4"):
             policy_type = "diffusion" if run.name == "dp" else "sdp"
             model_dir = last_checkpoint(output_dir / "runs" / run.name / "train") / "pretrained_model"
-            models[run.name] = (policy_type, model_dir, run_dir(output_dir, run))
+            models[run.name] = (policy_type, model_dir, run_dir(output_dir, run, seed_dir))
     evaluate_all([e for m in models.values() for e in cost_sweep.evaluations(*m, eval_args)], jobs)
     return {name: cost_sweep.points(*m) for name, m in models.items()}
 

@@ -64,11 +64,25 @@ def reward_success_plot(
         axes[row, 0].set_ylabel(y_label)
     for ax in axes.flat:
         ax.grid(alpha=0.3)
-        if log_x:
-            ax.set_xscale("log")
+    if log_x:
+        for col, (x_key, _, divisor) in enumerate(x_axes):
+            xs = sorted({p[x_key] / divisor for points in series.values() for p in points})
+            for ax in axes[:, col]:
+                log_ticks_at(ax, xs)
     axes[0, 0].legend(fontsize=8)
     fig.suptitle(title, fontsize=10)
     return fig, axes
+
+
+def log_ticks_at(ax, xs: Sequence[float]) -> None:
+    """A log x axis labelled at the points' own x values, without matplotlib's minor-tick labels
+    (which overlap when the axis spans less than a decade or two)."""
+    from matplotlib.ticker import FixedLocator, NullLocator
+
+    ax.set_xscale("log")
+    ax.xaxis.set_major_locator(FixedLocator(xs))
+    ax.xaxis.set_major_formatter(lambda x, _: f"{x:.3g}")
+    ax.xaxis.set_minor_locator(NullLocator())
 
 
 def save_figure(fig, path: Path) -> None:
