@@ -66,7 +66,7 @@ def reward_success_plot(
         ax.grid(alpha=0.3)
     if log_x:
         for col, (x_key, _, divisor) in enumerate(x_axes):
-            xs = sorted({p[x_key] / divisor for points in series.values() for p in points})
+            xs = [p[x_key] / divisor for points in series.values() for p in points]
             for ax in axes[:, col]:
                 log_ticks_at(ax, xs)
     axes[0, 0].legend(fontsize=8)
@@ -74,13 +74,18 @@ def reward_success_plot(
     return fig, axes
 
 
-def log_ticks_at(ax, xs: Sequence[float]) -> None:
-    """A log x axis labelled at the points' own x values, without matplotlib's minor-tick labels
-    (which overlap when the axis spans less than a decade or two)."""
+def log_ticks_at(ax, xs: Sequence[float], min_ratio: float = 1.5) -> None:
+    """A log x axis labelled at the points' own x values, each at least `min_ratio` times the last
+    label so that none overlap, without matplotlib's minor-tick labels (which overlap when the axis
+    spans less than a decade or two)."""
     from matplotlib.ticker import FixedLocator, NullLocator
 
+    ticks = []
+    for x in sorted(xs):
+        if not ticks or x >= ticks[-1] * min_ratio:
+            ticks.append(x)
     ax.set_xscale("log")
-    ax.xaxis.set_major_locator(FixedLocator(xs))
+    ax.xaxis.set_major_locator(FixedLocator(ticks))
     ax.xaxis.set_major_formatter(lambda x, _: f"{x:.3g}")
     ax.xaxis.set_minor_locator(NullLocator())
 
