@@ -86,14 +86,17 @@ def test_tiny_comparison_runs_resumes_and_reports(tmp_path, capsys):
     assert out.count("evaluated") == 2
     # the same model on other episodes: not retrained, evaluated and reported beside the default ones
     train_log = (tmp_path / "q" / "runs" / "dp" / "train.log").read_text()
-    cli.main([*common, "--runs", "comparison", "--only", "dp", "--eval_seed", "7"])
+    cli.main([*common, "--runs", "comparison", "--only", "dp", "--eval_seed", "7", "--sweep"])
     held_out = json.loads((tmp_path / "q" / "eval_seed7" / "results.json").read_text())
     assert held_out["eval_seed"] == 7 and set(held_out["rows"]) == {"dp"}
+    assert [p["sampler"] for p in held_out["sweep"]["dp"]] == dp_samplers
+    assert (tmp_path / "q" / "eval_seed7" / "cost.png").stat().st_size > 10_000
     assert (tmp_path / "q" / "runs" / "dp" / "train.log").read_text() == train_log
-    for eval_log in ("eval.log", "curve/000001.log"):
+    for eval_log in ("eval.log", "curve/000001.log", "sweep/DDIM2.log"):
         log = (tmp_path / "q" / "runs" / "dp" / "eval_seed7" / eval_log).read_text()
         assert "'seed': 7," in log and "'seed': 100000," not in log, eval_log
-    assert json.loads((tmp_path / "q" / "results.json").read_text())["rows"] == rows
+    default = json.loads((tmp_path / "q" / "results.json").read_text())
+    assert default["rows"] == rows and default["sweep"] == sweep
     # warm starts from the trained DP: fine-tuned runs log what they copied, scratch runs copy nothing
     cli.main([*common, "--runs", "warmstart", "--only", "warm_flatten", "warm_film", "scratch_film_short"])
     rows = json.loads((tmp_path / "q" / "results.json").read_text())["rows"]

@@ -229,41 +229,44 @@ def run_dir(output_dir: Path, run: Run, seed_dir: str = "") -> Path:
     return output_dir / "runs" / run.name / seed_dir
 
 
-def execute(
-    run: Run,
-    output_dir: Path,
-    data_args: list[str],
-    common: list[str],
-    eval_args: list[str],
-    curve_every: int | None = None,
-    echo: bool = True,
-    eval_jobs: int = 1,
-    seed_dir: str = "",
-) -> dict:
-    """Train (or resume, or reuse) and evaluate one run, and with `curve_every` every K-step
-    checkpoint of it on the same episodes (`eval_jobs` at once); returns its row. `echo=False` leaves
-    the CLIs' output in the run's log files only (runs in parallel); `seed_dir` is the evaluations'
-    subfolder (`run_dir`)."""
-    model_root = output_dir / "runs" / run.model_run
+@dataclass(frozen=True)
+class Plan:
+    """What the runs of one invocation share: where they live, the data and training flags, the
+    episodes they are evaluated on (`seed_dir`: the evaluations' subfolder, see `run_dir`), and the
+    curve's checkpoint spacing with how many evaluations run at once."""
+
+    output_dir: Path
+    data_args: list[str]
+    common: list[str]
+    eval_args: list[str]
+    seed_dir: str = ""
+    curve_every: int | None = None
+    eval_jobs: int = 1
+
+
+def execute(run: Run, plan: Plan, echo: bool = True) -> dict:
+    """Train (or resume, or reuse) and evaluate one run, and with `plan.curve_every` every K-step
+    checkpoint of it on the same episodes; returns its row. `echo=False` leaves the CLIs' output in
+    the run's log files only (runs in parallel)."""
+    model_root = plan.output_dir / "runs" / run.model_run
     timing_file = model_root / "timing.json"
     timing = json.loads(timing_file.read_text()) if timing_file.exists() else {"train_wall_s": 0.0}
     t0 = time.monotonic()
-    train_args = [*data_args, *common, *run.policy_args]
+    train_args = [*plan.data_args, *plan.common, *run.policy_args]
     model_dir = train(model_root / "train", train_args, run.steps, model_root / "train.log", echo)
     if not run.trains_as:
         timing["train_wall_s"] += time.monotonic() - t0
         timing_file.write_text(json.dumps(timing))
-    eval_args = eval_args + [f"--policy.{k}={v}" for k, v in run.eval_overrides.items()]
-    here = run_dir(output_dir, run, seed_dir)
+    eval_args = plan.eval_args + [f"--policy.{k}={v}" for k, v in run.eval_overrides.items()]
+    here = run_dir(plan.output_dir, run, plan.seed_dir)
     # the curve's last point is the run's own evaluation, done with the others
-    points = (
-        curve(model_root, here, eval_args, curve_every, run.steps, echo, eval_jobs) if curve_every else None
-    )
+    every = plan.curve_every
+    points = curve(model_root, here, eval_args, every, run.steps, echo, plan.eval_jobs) if every else None
     evaluate(model_dir, here / "eval", eval_args, here / "eval.log", echo)
     cost = stream_cost(model_dir, overrides=run.eval_overrides)  # alone: no evaluation runs now
     row = {"run": run.name, **episode_stats(here / "eval"), "steps": run.steps, **cost}
     row["train_wall_s"] = round(train_wall_s(model_root / "train.log", run.steps, timing["train_wall_s"]), 1)
-    if curve_every:
+    if every:
         row["curve"] = points
     return row
 
@@ -569,21 +572,9 @@ def run(args: argparse.Namespace) -> dict:
     report["task"] = task_label(args)
     report |= {"sweep": previous["sweep"]} if "sweep" in previous else {}
 
-    def execute_run(r: Run) -> dict:
-        return execute(
-            r,
-            output_dir,
-            data_args,
-            common,
-            eval_args,
-            args.curve_every,
-            args.jobs == 1,
-            args.eval_jobs,
-            seed_dir,
-        )
-
+    plan = Plan(output_dir, data_args, common, eval_args, seed_dir, args.curve_every, args.eval_jobs)
     episodes = f"{budget.n_episodes} episodes from seed {eval_seed}"
-    for row in run_in_parallel(selected, execute_run, args.jobs):
+    for row in run_in_parallel(selected, lambda r: execute(r, plan, args.jobs == 1), args.jobs):
         rows[row["run"]] = row
         write_report(report, report_dir, budget)
         if args.curve_every:
@@ -594,7 +585,7 @@ def run(args: argparse.Namespace) -> dict:
             )
         print("\n".join(status(selected, output_dir, seed_dir)), flush=True)
     if args.sweep:
-        sweep = run_sweep(selected, output_dir, eval_args, args.eval_jobs, seed_dir)
+        sweep = run_sweep(selected, plan)
         report["sweep"] = report.get("sweep", {}) | sweep
         write_report(report, report_dir, budget)
         title = f"{task_label(args)}, budget {budget_name}, {episodes}"
@@ -619,18 +610,17 @@ def run_in_parallel(runs: list[Run], execute_run: Callable[[Run], dict], jobs: i
             yield from (f.result() for f in as_completed([pool.submit(execute_run, r) for r in stage]))
 
 
-def run_sweep(
-    selected: list[Run], output_dir: Path, eval_args: list[str], jobs: int = 1, seed_dir: str = ""
-) -> dict[str, list[dict]]:
+def run_sweep(selected: list[Run], plan: Plan) -> dict[str, list[dict]]:
     """The comparison's final models at several samplers each (no retraining): every evaluation,
-    `jobs` at once, then each model's points."""
+    `plan.eval_jobs` at once, then each model's points."""
     models = {}
     for run in selected:
         if run.name in ("dp", "sdp_h2", "sdp_h4"):
             policy_type = "diffusion" if run.name == "dp" else "sdp"
-            model_dir = last_checkpoint(output_dir / "runs" / run.name / "train") / "pretrained_model"
-            models[run.name] = (policy_type, model_dir, run_dir(output_dir, run, seed_dir))
-    evaluate_all([e for m in models.values() for e in cost_sweep.evaluations(*m, eval_args)], jobs)
+            model_dir = last_checkpoint(plan.output_dir / "runs" / run.name / "train") / "pretrained_model"
+            models[run.name] = (policy_type, model_dir, run_dir(plan.output_dir, run, plan.seed_dir))
+    evaluations = [e for m in models.values() for e in cost_sweep.evaluations(*m, plan.eval_args)]
+    evaluate_all(evaluations, plan.eval_jobs)
     return {name: cost_sweep.points(*m) for name, m in models.items()}
 
 
