@@ -224,6 +224,11 @@ def dp_model(output_dir: Path) -> Path:
     return output_dir / "runs" / "dp" / "train" / "checkpoints" / "last" / "pretrained_model"
 
 
+def model_root(output_dir: Path, run: Run) -> Path:
+    """Where a run's model is trained: its own folder, or that of the run it evaluates (`trains_as`)."""
+    return output_dir / "runs" / run.model_run
+
+
 def run_dir(output_dir: Path, run: Run, seed_dir: str = "") -> Path:
     """Where a run's evaluations go: its folder, or its `eval_seedN` subfolder for other episodes."""
     return output_dir / "runs" / run.name / seed_dir
@@ -248,12 +253,12 @@ def execute(run: Run, plan: Plan, echo: bool = True) -> dict:
     """Train (or resume, or reuse) and evaluate one run, and with `plan.curve_every` every K-step
     checkpoint of it on the same episodes; returns its row. `echo=False` leaves the CLIs' output in
     the run's log files only (runs in parallel)."""
-    model_root = plan.output_dir / "runs" / run.model_run
-    timing_file = model_root / "timing.json"
+    root = model_root(plan.output_dir, run)
+    timing_file = root / "timing.json"
     timing = json.loads(timing_file.read_text()) if timing_file.exists() else {"train_wall_s": 0.0}
     t0 = time.monotonic()
     train_args = [*plan.data_args, *plan.common, *run.policy_args]
-    model_dir = train(model_root / "train", train_args, run.steps, model_root / "train.log", echo)
+    model_dir = train(root / "train", train_args, run.steps, root / "train.log", echo)
     if not run.trains_as:
         timing["train_wall_s"] += time.monotonic() - t0
         timing_file.write_text(json.dumps(timing))
@@ -261,18 +266,18 @@ def execute(run: Run, plan: Plan, echo: bool = True) -> dict:
     here = run_dir(plan.output_dir, run, plan.seed_dir)
     # the curve's last point is the run's own evaluation, done with the others
     every = plan.curve_every
-    points = curve(model_root, here, eval_args, every, run.steps, echo, plan.eval_jobs) if every else None
+    points = curve(root, here, eval_args, every, run.steps, echo, plan.eval_jobs) if every else None
     evaluate(model_dir, here / "eval", eval_args, here / "eval.log", echo)
     cost = stream_cost(model_dir, overrides=run.eval_overrides)  # alone: no evaluation runs now
     row = {"run": run.name, **episode_stats(here / "eval"), "steps": run.steps, **cost}
-    row["train_wall_s"] = round(train_wall_s(model_root / "train.log", run.steps, timing["train_wall_s"]), 1)
+    row["train_wall_s"] = round(train_wall_s(root / "train.log", run.steps, timing["train_wall_s"]), 1)
     if every:
         row["curve"] = points
     return row
 
 
 def curve(
-    model_root: Path,
+    root: Path,
     here: Path,
     eval_args: list[str],
     every: int,
@@ -280,11 +285,11 @@ def curve(
     echo: bool = True,
     jobs: int = 1,
 ) -> list[dict]:
-    """Every saved K-step checkpoint evaluated on the run's episodes (the last is the run's eval),
-    `jobs` evaluations at once."""
-    steps = checkpoint_steps(model_root / "train", every)
+    """Every saved K-step checkpoint of the model trained in `root` (`model_root`), evaluated on the
+    run's episodes (the last is the run's eval), `jobs` evaluations at once."""
+    steps = checkpoint_steps(root / "train", every)
     eval_dirs = {s: here / "eval" if s == final_step else here / "curve" / f"{s:06d}" for s in steps}
-    checkpoints = model_root / "train" / "checkpoints"
+    checkpoints = root / "train" / "checkpoints"
     evaluate_all(
         [
             Evaluation(checkpoints / f"{s:06d}" / "pretrained_model", d, eval_args, d.with_suffix(".log"))
@@ -293,7 +298,7 @@ def curve(
         jobs,
         echo,
     )
-    marks = step_logs(model_root / "train.log", final_step)
+    marks = step_logs(root / "train.log", final_step)
     points = []
     for step in steps:
         wall = wall_time_at(marks, step)
@@ -306,7 +311,7 @@ def curve(
 def status(runs: list[Run], output_dir: Path, seed_dir: str = "") -> list[str]:
     lines = []
     for run in runs:
-        done = trained_steps(output_dir / "runs" / run.model_run / "train")
+        done = trained_steps(model_root(output_dir, run) / "train")
         evaluated = (run_dir(output_dir, run, seed_dir) / "eval" / "eval_info.json").exists()
         state = (
             "evaluated" if evaluated else ("trained" if done >= run.steps else f"training {done}/{run.steps}")
@@ -617,7 +622,7 @@ def run_sweep(selected: list[Run], plan: Plan) -> dict[str, list[dict]]:
     for run in selected:
         if run.name in ("dp", "sdp_h2", "sdp_h4"):
             policy_type = "diffusion" if run.name == "dp" else "sdp"
-            model_dir = last_checkpoint(plan.output_dir / "runs" / run.name / "train") / "pretrained_model"
+            model_dir = last_checkpoint(model_root(plan.output_dir, run) / "train") / "pretrained_model"
             models[run.name] = (policy_type, model_dir, run_dir(plan.output_dir, run, plan.seed_dir))
     evaluations = [e for m in models.values() for e in cost_sweep.evaluations(*m, plan.eval_args)]
     evaluate_all(evaluations, plan.eval_jobs)
