@@ -64,6 +64,7 @@ CORE_TESTS = [
     "tests/test_mixed_precision.py",
     "tests/test_data_parallel.py::test_one_process_keeps_the_global_stream",
     "tests/test_data_parallel.py::test_every_rank_draws_its_own_training_noise_reproducibly",
+    "tests/test_memory_dataset.py",
 ]
 _buffer_tests = {p.relative_to(REPO).as_posix() for p in (REPO / "tests").glob("test_buffer*.py")}
 CORE_TESTS += sorted(_buffer_tests - set(CORE_TESTS))  # any later tests/test_buffer*.py
@@ -542,6 +543,27 @@ MUTANTS = [
       "        model.unet = unet\n",
       "\n",
       "the stand-in stays in the policy after the bookkeeping is timed"),
+    # --- memory_dataset.py: windows served from memory, LeRobot's indices and padding -----------------
+    M("I01", "memory_dataset.py",
+      "padding[f\"{key}_is_pad\"] = (wanted < start) | (wanted >= end)",
+      "padding[f\"{key}_is_pad\"] = (wanted < start) | (wanted > end)",
+      "the first frame past an episode's end not marked as padding"),
+    M("I02", "memory_dataset.py",
+      "rows = wanted.clamp(start, end - 1)",
+      "rows = wanted.clamp(0, len(self.columns[\"index\"]) - 1)",
+      "windows read across episode boundaries instead of repeating the edge frame"),
+    M("I03", "memory_dataset.py",
+      "item[key] = self.columns[key][rows if self.row_of is None else self.row_of[rows]]",
+      "item[key] = self.columns[key][rows]",
+      "a subset of episodes read at absolute frame indices instead of its own rows"),
+    M("I04", "memory_dataset.py",
+      "        item.update(padding)\n",
+      "\n",
+      "padding masks left out of the sample"),
+    M("I05", "memory_dataset.py",
+      "if meta.camera_keys:",
+      "if False:",
+      "a dataset with cameras served from memory without its images"),
 ]  # fmt: skip
 
 
