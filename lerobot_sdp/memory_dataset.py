@@ -45,9 +45,8 @@ class MemoryTable:
         self.ep_end = torch.zeros_like(self.ep_start)
         self.ep_start[ids] = torch.as_tensor(episodes["dataset_from_index"], dtype=torch.long)
         self.ep_end[ids] = torch.as_tensor(episodes["dataset_to_index"], dtype=torch.long)
-        self.deltas = {
-            key: torch.as_tensor(delta, dtype=torch.long) for key, delta in (reader.delta_indices or {}).items()
-        }
+        deltas = reader.delta_indices or {}
+        self.deltas = {key: torch.as_tensor(delta, dtype=torch.long) for key, delta in deltas.items()}
         # Rows are absolute frame indices, unless the reader holds a subset of the episodes.
         self.row_of = None
         if reader._absolute_to_relative_idx is not None:
@@ -96,7 +95,7 @@ def build_table(reader) -> MemoryTable | None:
     numpy_columns = reader.hf_dataset.with_format("numpy")[:]
     ragged = [key for key, v in numpy_columns.items() if v.dtype == object]
     if ragged:  # lists of varying length: no single tensor holds them
-        logger.info("Dataset %s is read by LeRobot's reader: its column %r varies in length.", name, ragged[0])
+        logger.info("Dataset %s is read by LeRobot's reader: column %r varies in length.", name, ragged[0])
         return None
     columns = {key: torch.from_numpy(np.ascontiguousarray(v)) for key, v in numpy_columns.items()}
     table = MemoryTable(reader, columns)
