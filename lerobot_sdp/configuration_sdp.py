@@ -11,7 +11,7 @@ import logging
 from dataclasses import dataclass, field
 
 from lerobot.configs import NormalizationMode, PreTrainedConfig
-from lerobot.optim import AdamConfig, DiffuserSchedulerConfig
+from lerobot.optim import AdamConfig, DiffuserSchedulerConfig, OptimizerConfig
 
 from .geometry import ChunkGeometry
 from .noise_schemes import NoiseSchemeWeights
@@ -23,6 +23,16 @@ STEP_CONDITIONINGS = ("flatten", "film_per_slot")
 def _check_choice(name: str, value: str, choices) -> None:
     if value not in choices:
         raise ValueError(f"`{name}` must be one of {list(choices)}, got {value!r}.")
+
+
+@OptimizerConfig.register_subclass("adam_fused")
+@dataclass
+class FusedAdamConfig(AdamConfig):
+    """LeRobot's Adam, built with torch's fused kernel: one pass over every weight instead of a loop over
+    the U-Net's 148 tensors (the Push-T config's optimizer step: 7.6 ms -> 3.3 ms on a 2-core CPU,
+    docs/benchmarks.md). The same update up to float rounding."""
+
+    fused: bool = True
 
 
 @PreTrainedConfig.register_subclass("sdp")
@@ -51,6 +61,8 @@ class SDPConfig(PreTrainedConfig):
         init_from: warm start from a trained LeRobot `diffusion` checkpoint (a local `pretrained_model`
             folder or a Hub id): its matching weights and normaliser statistics are copied when the
             policy is built (`warm_start.py`). Ignored when an SDP checkpoint is loaded.
+        optimizer_fused: LeRobot's Adam preset built with torch's fused kernel (`FusedAdamConfig`, the
+            default); false builds LeRobot's own AdamConfig, the same update up to float rounding.
     Everything else means what it means in LeRobot's DiffusionConfig.
     """
 
@@ -122,6 +134,7 @@ class SDPConfig(PreTrainedConfig):
     optimizer_betas: tuple = (0.95, 0.999)
     optimizer_eps: float = 1e-8
     optimizer_weight_decay: float = 1e-6
+    optimizer_fused: bool = True  # torch's fused Adam kernel (FusedAdamConfig); false: LeRobot's Adam
     scheduler_name: str = "cosine"
     scheduler_warmup_steps: int = 500
 
@@ -194,7 +207,8 @@ class SDPConfig(PreTrainedConfig):
         return g.executed.stop - 1 - g.n_past
 
     def get_optimizer_preset(self) -> AdamConfig:
-        return AdamConfig(
+        adam = FusedAdamConfig if self.optimizer_fused else AdamConfig
+        return adam(
             lr=self.optimizer_lr,
             betas=self.optimizer_betas,
             eps=self.optimizer_eps,

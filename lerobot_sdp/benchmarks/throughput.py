@@ -6,14 +6,18 @@ it: the wall-clock time between the first and the last of LeRobot's step logs (s
 dataset loading are excluded), times the batch size. `--busy N` runs N busy-looping processes
 beside each variant, to measure how a run degrades on a loaded machine.
 
-Variants (`--variants`):
+Variants (`--variants`); the first four read the data with LeRobot's reader (SDP_DATA_IN_MEMORY=0),
+the `memory` ones from memory (`lerobot_sdp.memory_dataset`, the default since it exists):
   baseline   the settings `configs/pusht_state_cpu.json` shipped with before the throughput work:
              no DataLoader worker, torch's default thread count (one per core);
   tuned      one DataLoader worker and one torch thread in the training process
              (OMP_NUM_THREADS=1): data loading and the update run on separate cores;
-  workers2   two DataLoader workers, one torch thread;
+  workers2   two DataLoader workers, one torch thread (the CPU configs' setting before the data
+             came from memory);
   threads2_passive  one worker, two torch threads whose OpenMP pool sleeps instead of spinning
-             while it waits (OMP_WAIT_POLICY=PASSIVE).
+             while it waits (OMP_WAIT_POLICY=PASSIVE);
+  memory     data from memory, no worker, one torch thread per core (the CPU configs' setting now);
+  memory_bf16  the same with the forward under bf16 autocast (`--policy.use_amp=true`).
 Output: OUTPUT_DIR/throughput.json and a Markdown table on stdout.
 """
 
@@ -27,21 +31,28 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
+from .. import memory_dataset
 from ..lerobot_cli import lerobot_bin
 from .curves import parse_step
 from .policy_args import add_training_arguments
 from .report import table, write_json
 
 STEP_LOG = re.compile(r"step:(\d+(?:\.\d+)?[KM]?) .*updt_s:([\d.]+) data_s:([\d.]+)")
-THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OMP_WAIT_POLICY")
+THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OMP_WAIT_POLICY", memory_dataset.ENV)
+READER = {memory_dataset.ENV: "0"}
+ONE_THREAD = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+CORES = str(len(os.sched_getaffinity(0)))
+ALL_CORES = {"OMP_NUM_THREADS": CORES, "MKL_NUM_THREADS": CORES}
 VARIANTS = {
-    "baseline": ({}, ["--num_workers=0"]),
-    "tuned": ({"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}, ["--num_workers=1"]),
-    "workers2": ({"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}, ["--num_workers=2"]),
+    "baseline": (READER, ["--num_workers=0"]),
+    "tuned": (READER | ONE_THREAD, ["--num_workers=1"]),
+    "workers2": (READER | ONE_THREAD, ["--num_workers=2"]),
     "threads2_passive": (
-        {"OMP_NUM_THREADS": "2", "MKL_NUM_THREADS": "2", "OMP_WAIT_POLICY": "PASSIVE"},
+        READER | {"OMP_NUM_THREADS": "2", "MKL_NUM_THREADS": "2", "OMP_WAIT_POLICY": "PASSIVE"},
         ["--num_workers=1"],
     ),
+    "memory": (ALL_CORES, ["--num_workers=0"]),
+    "memory_bf16": (ALL_CORES, ["--num_workers=0", "--policy.use_amp=true"]),
 }
 
 
