@@ -29,10 +29,30 @@ def lerobot_bin(name: str) -> str:
 # spin-waits for a core another process holds (docs/benchmarks.md, "Training throughput").
 THREAD_DEFAULTS = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 CHILD_GRACE_S = 30.0  # how long a child gets to stop after each signal (`end_child`)
+LEROBOT_NUM_WORKERS = 4  # TrainPipelineConfig's default
 
 
-def subprocess_env() -> dict[str, str]:
-    return THREAD_DEFAULTS | dict(os.environ)
+def subprocess_env(threads: int = 1) -> dict[str, str]:
+    """The environment of a LeRobot child: `threads` torch threads unless the user exported a count."""
+    counts = {name: str(threads) for name in THREAD_DEFAULTS}
+    return counts | dict(os.environ)
+
+
+def num_workers(train_args: list[str]) -> int:
+    """The DataLoader workers a `lerobot-train` command line asks for: its `--num_workers`, else its
+    config file's, else LeRobot's default."""
+    flags = dict(a.removeprefix("--").split("=", 1) for a in train_args if a.startswith("--") and "=" in a)
+    if "num_workers" in flags:
+        return int(flags["num_workers"])
+    if "config_path" in flags:
+        return json.loads(Path(flags["config_path"]).read_text()).get("num_workers", LEROBOT_NUM_WORKERS)
+    return LEROBOT_NUM_WORKERS
+
+
+def training_threads(train_args: list[str]) -> int:
+    """One torch thread beside DataLoader workers (they hold the other cores); one per core without
+    them: a dataset served from memory (`memory_dataset`) leaves every core to the update."""
+    return 1 if num_workers(train_args) > 0 else len(os.sched_getaffinity(0))
 
 
 def let_sigint_reach_children() -> None:
@@ -44,11 +64,11 @@ def let_sigint_reach_children() -> None:
         signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
-def run_logged(cmd: list[str], log: Path, echo: bool = True) -> None:
-    """Run a command, echoing its output and appending it to `log`."""
+def run_logged(cmd: list[str], log: Path, echo: bool = True, threads: int = 1) -> None:
+    """Run a command with `threads` torch threads, echoing its output and appending it to `log`."""
     log.parent.mkdir(parents=True, exist_ok=True)
-    print(f"[run] {' '.join(cmd)}\n[log] {log}", flush=True)
-    env = subprocess_env()
+    env = subprocess_env(threads)
+    print(f"[run] {' '.join(cmd)}\n[log] {log}\n[threads] OMP_NUM_THREADS={env['OMP_NUM_THREADS']}", flush=True)
     with (
         log.open("a") as f,
         subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env) as proc,
@@ -118,7 +138,7 @@ def train(
         raise CLIError(f"{train_dir} exists but holds no checkpoint: move it away or delete it, then rerun.")
     else:
         cmd = [*train_command(processes), *args, f"--steps={steps}", f"--output_dir={train_dir}"]
-    run_logged(cmd, log, echo)
+    run_logged(cmd, log, echo, threads=training_threads(cmd) if processes == 1 else 1)
     return model_dir
 
 

@@ -105,3 +105,30 @@ def test_a_command_left_by_an_error_is_stopped_not_waited_for(tmp_path):
     except ProcessLookupError:
         return
     raise AssertionError(f"the child {pid} still runs")
+
+
+def test_training_threads_follow_the_dataloader_workers(tmp_path):
+    from lerobot_sdp.lerobot_cli import num_workers, training_threads
+
+    config = tmp_path / "c.json"
+    config.write_text(json.dumps({"num_workers": 0, "steps": 10}))
+    with_config = [f"--config_path={config}", "--steps=5"]
+    assert num_workers(with_config) == 0
+    assert num_workers([*with_config, "--num_workers=2"]) == 2  # the flag wins over the file
+    assert num_workers(["--policy.type=sdp"]) == 4  # LeRobot's default
+    cores = len(__import__("os").sched_getaffinity(0))
+    assert training_threads(with_config) == cores
+    assert training_threads([*with_config, "--num_workers=1"]) == 1
+
+
+def test_run_logged_gives_the_child_its_threads_unless_the_user_chose(tmp_path, monkeypatch):
+    from lerobot_sdp.lerobot_cli import run_logged
+
+    child = "import os; print('threads', os.environ['OMP_NUM_THREADS'], os.environ['MKL_NUM_THREADS'])"
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.delenv("MKL_NUM_THREADS", raising=False)
+    run_logged([sys.executable, "-c", child], tmp_path / "a.log", echo=False, threads=2)
+    assert "threads 2 2" in (tmp_path / "a.log").read_text()
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")
+    run_logged([sys.executable, "-c", child], tmp_path / "b.log", echo=False, threads=2)
+    assert "threads 3 2" in (tmp_path / "b.log").read_text()

@@ -561,7 +561,7 @@ def run(args: argparse.Namespace) -> dict:
     common = [
         f"--batch_size={budget.batch_size}",
         "--seed=1000",
-        "--num_workers=2",
+        "--num_workers=0",  # low-dimensional data, served from memory: every core to the update
         "--wandb.enable=false",
         # at most 2,000 steps lost to an interruption; curves evaluate the multiples of --curve_every
         f"--save_freq={math.gcd(args.curve_every or 0, max(1, min(budget.steps, 2000)))}",
