@@ -68,7 +68,8 @@ def run_logged(cmd: list[str], log: Path, echo: bool = True, threads: int = 1) -
     """Run a command with `threads` torch threads, echoing its output and appending it to `log`."""
     log.parent.mkdir(parents=True, exist_ok=True)
     env = subprocess_env(threads)
-    print(f"[run] {' '.join(cmd)}\n[log] {log}\n[threads] OMP_NUM_THREADS={env['OMP_NUM_THREADS']}", flush=True)
+    threads_line = f"[threads] OMP_NUM_THREADS={env['OMP_NUM_THREADS']}"
+    print(f"[run] {' '.join(cmd)}\n[log] {log}\n{threads_line}", flush=True)
     with (
         log.open("a") as f,
         subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env) as proc,
