@@ -107,8 +107,15 @@ def build_table(reader) -> MemoryTable | None:
     return table
 
 
+def read_with_lerobot(dataset) -> None:
+    """Let LeRobot's own reader serve this dataset (a benchmark's A/B against the table)."""
+    dataset._ensure_reader().lerobot_reads = True
+
+
 def table_of(reader) -> MemoryTable | None:
     """The reader's in-memory table, built on first use and again if the reader reloads its data."""
+    if getattr(reader, "lerobot_reads", False):
+        return None
     cached = getattr(reader, "_sdp_memory_table", None)
     if cached is None or cached[0] is not reader.hf_dataset:
         cached = (reader.hf_dataset, build_table(reader))
