@@ -87,7 +87,8 @@ def test_threads_and_data_paths_are_set_per_contender_from_the_same_weights(tmp_
     out = tmp_path / "out"
     cli.main(["train-profile", "--config_path", str(tiny_config(tmp_path / "c.json")), "--policies", "sdp",
               "--num_threads", "1", "2", "--data", "memory", "lerobot",
-              "--dataset_root", str(tmp_path / "data"), "--repo_id", "local/tiny_pusht", "--steps", "4", "--warmup", "1", "--loss_bin", "2",
+              "--dataset_root", str(tmp_path / "data"), "--repo_id", "local/tiny_pusht",
+              "--steps", "4", "--warmup", "1", "--loss_bin", "2",
               "--output_dir", str(out)])  # fmt: skip
     names = ["sdp 1t memory", "sdp 1t lerobot", "sdp 2t memory", "sdp 2t lerobot"]
     assert sorted(set(seen)) == sorted((n, int(n.split()[1][0])) for n in names)
