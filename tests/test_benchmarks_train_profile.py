@@ -93,7 +93,7 @@ def test_threads_and_data_paths_are_set_per_contender_from_the_same_weights(tmp_
     names = ["sdp 1t memory", "sdp 1t lerobot", "sdp 2t memory", "sdp 2t lerobot"]
     assert sorted(set(seen)) == sorted((n, int(n.split()[1][0])) for n in names)
     for c, start in built:
-        reader = c.batches._dataset._ensure_reader()
+        reader = c.dataset._ensure_reader()
         assert (memory_dataset.table_of(reader) is None) == (c.variant.data == "lerobot"), c.name
         assert all(torch.equal(w, built[0][1][n]) for n, w in start.items()), "not the same initial weights"
     report = json.loads((out / "train_profile.json").read_text())

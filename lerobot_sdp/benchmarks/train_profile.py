@@ -158,6 +158,7 @@ class Contender:
     preprocessor: object
     optimizer: torch.optim.Optimizer
     scheduler: object
+    dataset: object
     batches: object
     timer: Timer
     variant: Variant
@@ -173,6 +174,7 @@ def build(
     from lerobot.datasets.factory import make_dataset
     from lerobot.optim.factory import make_optimizer_and_scheduler
     from lerobot.policies.factory import make_policy, make_pre_post_processors
+    from lerobot.utils.utils import cycle
 
     cfg = train_config(args, config_path, policy_type)
     dataset = make_dataset(cfg)
@@ -209,7 +211,8 @@ def build(
         preprocessor,
         optimizer,
         scheduler,
-        iter(loader),
+        dataset,
+        cycle(loader),  # endless, as lerobot-train's
         timer,
         variant,
         forward,
