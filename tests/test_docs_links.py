@@ -14,9 +14,9 @@ FENCE = re.compile(r"^\s*(```|~~~)")
 
 
 def prose_lines(text: str):
-    """The lines outside fenced code blocks."""
+    """The lines outside fenced code blocks and HTML comments (neither is rendered)."""
     fenced = False
-    for line in text.splitlines():
+    for line in re.sub(r"<!--.*?-->", "", text, flags=re.DOTALL).splitlines():
         if FENCE.match(line):
             fenced = not fenced
         elif not fenced:
@@ -62,7 +62,7 @@ def test_the_checker_reads_github_anchors_and_skips_code():
     assert slug("On time: delay-aware streaming (`--policy.max_delay`)") == (
         "on-time-delay-aware-streaming---policymax_delay"
     )
-    text = "see [a](x.md#y)\n```\n[b](nothing.md)\n```\n`[c](code.md)` and ![d](img.png)"
+    text = "see [a](x.md#y)\n```\n[b](nothing.md)\n```\n`[c](code.md)` and ![d](img.png)\n<!--\n![e](e.png)\n-->"
     assert [t for line in prose_lines(text) for t in link_targets(line)] == ["x.md#y", "img.png"]
 
 
