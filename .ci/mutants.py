@@ -54,6 +54,7 @@ CORE_TESTS = [
     "tests/test_policy_server_faults.py",
     "tests/test_model_card.py",
     "tests/test_sampling_modes.py",
+    "tests/test_benchmarks_animation.py",
     "tests/test_benchmarks_compiled.py",
     "tests/test_rtc.py",
     "tests/test_benchmarks_delay.py::test_blocking_holds_the_last_target_for_d_ticks_then_runs_the_stale_chunk",
@@ -572,6 +573,23 @@ MUTANTS = [
       "primer = kind or self.config.action_primer",
       "primer = self.config.action_primer",
       "the primer override is ignored"),
+    # One rollout video as a small animation (benchmarks/animation.py).
+    M("V01", "benchmarks/animation.py",
+      "if len(data) <= max_bytes:",
+      "if True:",
+      "the size limit is ignored"),
+    M("V02", "benchmarks/animation.py",
+      "kept = frames[::every]",
+      "kept = frames",
+      "every frame is kept whatever --every says"),
+    M("V03", "benchmarks/animation.py",
+      "if args.output.exists() and not args.overwrite:",
+      "if False:",
+      "an existing file is overwritten without --overwrite"),
+    M("V04", "benchmarks/animation.py",
+      "duration=round(1000 / fps),",
+      "duration=100,",
+      "the animation ignores the video's frame rate"),
 ]  # fmt: skip
 
 
