@@ -18,6 +18,7 @@ from .noise_schemes import NoiseSchemeWeights
 
 ACTION_PRIMERS = ("zero", "constant", "denoise")
 STEP_CONDITIONINGS = ("flatten", "film_per_slot")
+SAMPLINGS = ("stream", "fresh", "full_denoise")
 
 
 def _check_choice(name: str, value: str, choices) -> None:
@@ -58,6 +59,13 @@ class SDPConfig(PreTrainedConfig):
             denoised with those d actions as clean, committed slots after the observation, and starts
             at t + d (`geometry.py`, docs/deployment.md). Training draws d in 0..max_delay per sample.
             0 (the default) is the paper's SDP: a chunk starts right after its observation.
+        sampling: how each executed chunk is sampled. "stream" (SDP, the default): one streaming
+            step on the buffer carried over from the last chunk, N / h denoiser calls. Two diagnostics,
+            for evaluating where a policy loses (e.g. `lerobot-eval --policy.sampling=full_denoise`):
+            "fresh": every chunk sampled afresh from its own observation (the buffer dropped, primed by
+            a full denoise, then one streaming step: N + N / h calls); "full_denoise": every chunk
+            sampled as Diffusion Policy samples (one N-step denoise with every slot at one level, no
+            buffer: N calls). Neither takes committed actions.
         init_from: warm start from a trained LeRobot `diffusion` checkpoint (a local `pretrained_model`
             folder or a Hub id): its matching weights and normaliser statistics are copied when the
             policy is built (`warm_start.py`). Ignored when an SDP checkpoint is loaded.
@@ -117,6 +125,7 @@ class SDPConfig(PreTrainedConfig):
     # to hold the final pose). Masking them made no measurable difference (docs/results.md).
     do_mask_loss_for_padding: bool = False
     max_delay: int = 0
+    sampling: str = "stream"
 
     # EMA (the authors' settings)
     use_ema: bool = True
@@ -156,6 +165,7 @@ class SDPConfig(PreTrainedConfig):
         _check_choice("noise_scheduler_type", self.noise_scheduler_type, ("DDPM", "DDIM"))
         _check_choice("action_primer", self.action_primer, ACTION_PRIMERS)
         _check_choice("step_conditioning", self.step_conditioning, STEP_CONDITIONINGS)
+        _check_choice("sampling", self.sampling, SAMPLINGS)
         if isinstance(self.noise_schemes, dict):  # convenience for Python callers
             self.noise_schemes = NoiseSchemeWeights(**self.noise_schemes)
         if self.num_inference_steps is not None and self.num_inference_steps > self.num_train_timesteps:

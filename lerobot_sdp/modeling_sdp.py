@@ -80,15 +80,19 @@ class SDPModel(DiffusionModel):
         return self._prepare_global_conditioning(history)
 
     def primer(
-        self, history: dict[str, Tensor], state_to_action: Tensor, generator: torch.Generator | None
+        self,
+        history: dict[str, Tensor],
+        state_to_action: Tensor,
+        generator: torch.Generator | None,
+        kind: str | None = None,
     ) -> Tensor:
         """Clean (normalised) sequence a new stream starts from (paper Sec. "Initializing the buffer"):
         zeros, the newest state repeated as actions (`state_to_action`: scale and offset), or a full
-        denoise. Only "denoise" needs the observation conditioning."""
+        denoise; ``kind`` overrides `action_primer`. Only "denoise" needs the observation conditioning."""
         state = history[OBS_STATE]
         batch_size = state.shape[0]
         shape = (batch_size, self.geometry.horizon, self.config.action_feature.shape[0])
-        primer = self.config.action_primer
+        primer = kind or self.config.action_primer
         if primer == "denoise":
             return self.conditional_sample(batch_size, self.global_conditioning(history), generator)
         if primer == "constant":
@@ -410,14 +414,26 @@ class SDPPolicy(PreTrainedPolicy):
         committed: int = 0,
     ) -> Tensor:
         """One streaming call on a (B, n_obs_steps, ...) history, ``committed`` actions of the last
-        chunk still to run before the new one: prime a new stream, run the step."""
+        chunk still to run before the new one: prime a new stream, run the step. The diagnostic
+        `sampling` modes ("fresh", "full_denoise") sample the chunk without the last chunk's buffer."""
         batch_size = history[OBS_STATE].shape[0]
-        if self._buffer.batch_size not in (None, batch_size):
+        sampling = self.config.sampling
+        if sampling != "stream" and committed:
+            raise ValueError(
+                f"sampling={sampling!r} samples every chunk without the last one, so it cannot take "
+                f"{committed} committed actions: use `--policy.sampling=stream` for delayed inference."
+            )
+        if self._buffer.batch_size not in (None, batch_size) or sampling == "fresh":
             self._buffer.clear()
         model = self._sampling_model()
+        if sampling == "full_denoise":
+            refuse_non_finite(history, finite_flags(history))
+            actions = model.conditional_sample(batch_size, model.global_conditioning(history), generator)
+            return actions[:, self.geometry.executed]
         fresh = self._buffer.sample is None
         if fresh:
-            self._buffer.prime(model.primer(history, self.state_to_action, generator), generator)
+            kind = "denoise" if sampling == "fresh" else None  # afresh: from this observation only
+            self._buffer.prime(model.primer(history, self.state_to_action, generator, kind), generator)
         model_step = model.stream_step_for(history[OBS_STATE].device, compiled)
 
         def step(

@@ -89,10 +89,10 @@ def test_the_check_sees_relative_and_absolute_imports():
     assert "lerobot_sdp.main_job" in imported(PKG / "pusht" / "job.py")  # from ..main_job import
 
 
-def test_the_readme_map_names_every_module_and_subpackage():
-    readme = (PKG.parent / "README.md").read_text()
-    layout = readme[readme.index("## Layout") :].split("\n## ", 1)[0]
+def test_the_guides_map_names_every_module_and_subpackage():
+    guide = (PKG.parent / "docs" / "guide.md").read_text()
+    layout = guide[guide.index("### Layout") :].split("\n### ", 1)[0]
     names = [f"`{p.name}`" for p in PKG.glob("*.py") if p.name != "__init__.py"]
     names += [f"`{p.parent.name}/`" for p in PKG.glob("*/__init__.py")]
     missing = [n for n in names if n not in layout]
-    assert not missing, f"README's Layout does not name {missing}"
+    assert not missing, f"docs/guide.md's Layout does not name {missing}"

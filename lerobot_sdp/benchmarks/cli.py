@@ -11,6 +11,7 @@ from types import ModuleType
 from lerobot.utils.utils import init_logging
 
 from . import (
+    animation,
     compiled,
     data_parallel,
     delay,
@@ -32,6 +33,7 @@ SUBCOMMANDS: dict[str, ModuleType] = {
     "deployment": deployment,
     "delay": delay,
     "server-load": server_load,
+    "animation": animation,
 }
 
 
