@@ -26,7 +26,7 @@ from lerobot.configs.policies import PreTrainedConfig
 
 from . import shipped_configs
 from .chunk_cost import stream_cost
-from .lerobot_cli import CLIError, eval_info, evaluate, train, trained_steps
+from .lerobot_cli import CLIError, eval_info, evaluate, num_workers, train, trained_steps, training_threads
 
 STAGES = ("data", "train", "eval", "measure")
 
@@ -176,6 +176,8 @@ def train_evaluate_measure(
     with timings.stage("measure", replace=True):
         cost = stream_cost(model_dir)
     policy = json.loads((model_dir / "config.json").read_text())
+    timing = timings.summary()
+    train_s = timing["stage_time_s"].get("train")
     return {
         "pc_success": metrics["pc_success"],
         "avg_max_reward": metrics["avg_max_reward"],
@@ -188,7 +190,11 @@ def train_evaluate_measure(
         "model_dir": str(model_dir),
         "videos": str(eval_dir / "videos"),
         "video_files": [str(v) for v in videos],
-        **timings.summary(),
+        "train_steps": trained_steps(train_dir),
+        "train_steps_per_s": trained_steps(train_dir) / train_s if train_s else None,
+        "train_num_workers": num_workers(train_args),
+        "train_torch_threads": training_threads(train_args),
+        **timing,
     }
 
 
@@ -204,6 +210,13 @@ def print_summary(title: str, summary: dict, output_dir: Path) -> None:
         f"latency             {summary['latency_per_chunk_ms']:.1f} ms per chunk "
         f"(batch 1, {summary.get('latency_device', 'cpu')}, after the first chunk)"
     )
+    if summary.get("train_steps_per_s"):
+        print(
+            f"training            {summary['train_steps']} steps, "
+            f"{summary['train_steps_per_s']:.2f} steps/s "
+            f"(start-up and checkpoints included; {summary['train_torch_threads']} torch threads, "
+            f"{summary['train_num_workers']} DataLoader workers)"
+        )
     print(f"checkpoint          {summary['model_dir']}")
     n_videos = len(summary.get("video_files", []))
     print(f"videos              {summary['videos']}  ({n_videos} episodes rendered as .mp4)")

@@ -94,6 +94,10 @@ def test_console_summary_shows_latency_checkpoint_videos_and_resume(tmp_path, ca
         "stage_time_s": {"data": 12.0, "train": 150.0, "eval": 30.0, "measure": 3.0},
         "resumed": True,
         "sessions": [{"stages": {"train": "ran"}}, {"stages": {"train": "reused", "eval": "ran"}}],
+        "train_steps": 300,
+        "train_steps_per_s": 2.0,
+        "train_torch_threads": 2,
+        "train_num_workers": 0,
     }
     print_summary("SDP on Push-T (keypoints)", summary, tmp_path)
     out = capsys.readouterr().out
@@ -103,3 +107,4 @@ def test_console_summary_shows_latency_checkpoint_videos_and_resume(tmp_path, ca
     assert "videos              out/eval/videos  (1 episodes rendered as .mp4)" in out
     assert "195 s in all (data 12 s, train 150 s, eval 30 s, measure 3 s; resumed in session 2" in out
     assert "train reused, eval ran" in out
+    assert "training            300 steps, 2.00 steps/s (start-up and checkpoints included; 2 torch threads, 0" in out

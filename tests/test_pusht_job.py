@@ -43,6 +43,10 @@ def test_main_job_then_resume_keeps_the_first_runs_timings(tmp_path, monkeypatch
     assert first["video_files"] and Path(first["video_files"][0]).exists()
     assert f"videos              {out_dir / 'eval' / 'videos'}" in first_out
     assert first["resumed"] is False and first["latency_per_chunk_ms"] > 0
+    steps = json.loads(config_path.read_text())["steps"]
+    assert first["train_steps"] == steps
+    assert first["train_steps_per_s"] == steps / first["stage_time_s"]["train"]
+    assert "steps/s (start-up and checkpoints included;" in first_out
 
     job.main([*argv, "--resume"])
     second = json.loads((out_dir / "summary.json").read_text())
