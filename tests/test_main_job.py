@@ -107,4 +107,4 @@ def test_console_summary_shows_latency_checkpoint_videos_and_resume(tmp_path, ca
     assert "videos              out/eval/videos  (1 episodes rendered as .mp4)" in out
     assert "195 s in all (data 12 s, train 150 s, eval 30 s, measure 3 s; resumed in session 2" in out
     assert "train reused, eval ran" in out
-    assert "training            300 steps, 2.00 steps/s (start-up and checkpoints included; 2 torch threads, 0" in out
+    assert "300 steps, 2.00 steps/s (start-up and checkpoints included; 2 torch threads, 0 DataLoader" in out
