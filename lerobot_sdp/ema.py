@@ -18,11 +18,11 @@ def ema_decay(step: Tensor, power: float, max_decay: float) -> Tensor:
 @torch.no_grad()
 def ema_update(averaged: nn.Module, model: nn.Module, decay: Tensor) -> None:
     """averaged <- decay * averaged + (1 - decay) * model for parameters; buffers are copied."""
-    avg = [p for p in averaged.parameters()]
+    avg = list(averaged.parameters())
     new = [p.detach() for p in model.parameters()]
-    # avg += (1 - decay) (new - avg), with fused multi-tensor kernels and the decay left on the device
-    step = torch._foreach_sub(new, avg)
-    torch._foreach_mul_(step, (1.0 - decay).to(avg[0].dtype))
-    torch._foreach_add_(avg, step)
+    # avg += (1 - decay) (new - avg) in one fused multi-tensor pass (lerp), the weight a 0-d tensor
+    # left on the device (no host read): 3 tensor reads and writes per weight instead of sub, mul and add's 8
+    weight = (1.0 - decay).to(avg[0].dtype)
+    torch._foreach_lerp_(avg, new, [weight] * len(avg))
     for b_avg, b_new in zip(averaged.buffers(), model.buffers(), strict=True):
         b_avg.copy_(b_new)
