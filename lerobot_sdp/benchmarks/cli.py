@@ -16,6 +16,7 @@ from . import (
     delay,
     deployment,
     latency,
+    probe,
     quality,
     server_load,
     throughput,
@@ -32,6 +33,7 @@ SUBCOMMANDS: dict[str, ModuleType] = {
     "deployment": deployment,
     "delay": delay,
     "server-load": server_load,
+    "probe": probe,
 }
 
 
