@@ -12,7 +12,8 @@ staircases (chunk i at k = i*s + o steps remaining, o = 1..s); LeRobot's DP, eac
 one for all slots. The loss is the epsilon MSE (a sample-predicting network's x0 converted to its
 epsilon), per chunk and per band of training timesteps (`--bands` equal bands of 0..T-1). A "chunk"
 is the same slot range for both: the past slots and the first n_action_steps actions are chunk 0,
-each next n_action_steps slots the next chunk, trailing padding the last. The noise is drawn from
+each next n_action_steps slots the next chunk (SDP's trailing padding belongs to its last chunk; DP's
+slots past its last full chunk form a shorter one). The noise is drawn from
 `--seed` in a fixed order: a rerun gives the same figures.
 
 Held out: the windows are those of the episodes given (`--episodes`, default all of the dataset's);
@@ -74,11 +75,10 @@ def window_indices(episode_ranges: list[tuple[int, int]], max_windows: int) -> l
 
 
 def slot_chunks(horizon: int, n_past: int, chunk_len: int) -> Tensor:
-    """(horizon,) chunk of every slot: past slots and the first chunk_len after them 0, then one per
-    chunk_len slots; a trailing remainder shorter than a chunk joins the last full chunk."""
-    n_chunks = max(1, (horizon - n_past) // chunk_len)
+    """(horizon,) chunk of every slot of a DP horizon: the past slots and the first chunk_len after
+    them 0, then one chunk per chunk_len slots (the last may be shorter)."""
     j = torch.arange(horizon)
-    return ((j - n_past).clamp(min=0) // chunk_len).clamp(max=n_chunks - 1)
+    return (j - n_past).clamp(min=0) // chunk_len
 
 
 def level_patterns(policy) -> tuple[Tensor, Tensor, PerSlotSchedule]:
@@ -143,7 +143,9 @@ def probe_policy(policy, preprocessor, dataset, probe: Probe) -> dict:
             t = patterns[p].expand(size, -1)
             eps = torch.randn(actions.shape, generator=generator, device=device)
             x_t = schedule.add_noise(actions, eps, t)
-            count.index_add_(0, cell[p], torch.full_like(cell[p], actions[..., 0].numel(), dtype=count.dtype))
+            count.index_add_(
+                0, cell[p], torch.full_like(cell[p], size * actions.shape[-1], dtype=count.dtype)
+            )
             for name, cond in conds.items():
                 err = epsilon_error(policy, schedule, x_t, t, cond, eps).sum(-1)  # (B, T)
                 sums[name].index_add_(0, cell[p], err.sum(0))
