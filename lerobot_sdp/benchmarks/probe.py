@@ -117,8 +117,6 @@ def probe_policy(policy, preprocessor, dataset, probe: Probe) -> dict:
     and how many values each sum holds."""
     if policy.config.type not in PROBED_TYPES:
         raise SystemExit(f"The probe takes {' or '.join(PROBED_TYPES)} policies, got {policy.config.type!r}.")
-    if probe.batch_size < 2:
-        raise SystemExit("--batch_size must be at least 2: the shuffle swaps conditionings within a batch.")
     policy.eval()
     patterns, chunks, schedule = level_patterns(policy)
     device = patterns.device
@@ -234,32 +232,59 @@ def episode_ranges(dataset, episodes: list[int] | None) -> tuple[list[int], list
     return chosen, ranges
 
 
-def run(args: argparse.Namespace) -> dict:
+def probe_models(
+    policies: dict[str, Path],
+    dataset_root: Path,
+    repo_id: str,
+    episodes: list[int] | None = None,
+    probe: Probe | None = None,
+    max_windows: int = 512,
+    device: str = "cpu",
+) -> dict:
+    """The report of every policy (name -> pretrained_model folder) on the episodes' windows, with
+    ``probe``'s bands, batch and seed (its windows are chosen here)."""
     from lerobot.policies.factory import make_pre_post_processors
 
-    policies = parse_policies(args.policy)
-    if args.bands < 1 or args.max_windows < 2:
-        raise SystemExit("--bands must be at least 1 and --max_windows at least 2.")
-    report = {"rows": []}
+    settings = probe or Probe([])
+    if settings.bands < 1 or settings.batch_size < 2 or max_windows < 2:
+        raise SystemExit(
+            "--bands must be at least 1, --batch_size at least 2 (the shuffle swaps conditionings within "
+            "a batch) and --max_windows at least 2."
+        )
+    report = {"policies": {}, "rows": []}
     for name, path in policies.items():
-        policy = load_policy(path, args.device)
-        dataset = open_dataset(args.dataset_root, args.repo_id, policy.config)
-        episodes, ranges = episode_ranges(dataset, args.episodes)
-        probe = Probe(window_indices(ranges, args.max_windows), args.bands, args.batch_size, args.seed)
+        policy = load_policy(path, device)
+        dataset = open_dataset(dataset_root, repo_id, policy.config)
+        chosen, ranges = episode_ranges(dataset, episodes)
+        this = Probe(window_indices(ranges, max_windows), settings.bands, settings.batch_size, settings.seed)
         preprocessor, _ = make_pre_post_processors(
             policy_cfg=policy.config, pretrained_path=str(path), preprocessor_overrides={}
         )
-        sums = probe_policy(policy, preprocessor, dataset, probe)
-        report["rows"] += rows_of(name, sums, policy.config.num_train_timesteps, args.bands)
+        sums = probe_policy(policy, preprocessor, dataset, this)
+        report["rows"] += rows_of(name, sums, policy.config.num_train_timesteps, this.bands)
+        report["policies"][name] = {"path": str(path), "type": policy.config.type}
         report["settings"] = {
-            "dataset_root": str(args.dataset_root),
-            "episodes": "all" if args.episodes is None else episodes,
-            "n_windows": len(probe.windows),
-            "bands": args.bands,
-            "batch_size": args.batch_size,
-            "seed": args.seed,
+            "dataset_root": str(dataset_root),
+            "episodes": "all" if episodes is None else chosen,
+            "n_windows": len(this.windows),
+            "bands": this.bands,
+            "batch_size": this.batch_size,
+            "seed": this.seed,
         }
-        report.setdefault("policies", {})[name] = {"path": str(path), "type": policy.config.type}
+    return report
+
+
+def run(args: argparse.Namespace) -> dict:
+    probe = Probe([], args.bands, args.batch_size, args.seed)
+    report = probe_models(
+        parse_policies(args.policy),
+        args.dataset_root,
+        args.repo_id,
+        args.episodes,
+        probe,
+        args.max_windows,
+        args.device,
+    )
     args.output_dir.mkdir(parents=True, exist_ok=True)
     write_json(args.output_dir / "probe.json", report)
     text = markdown(report)
