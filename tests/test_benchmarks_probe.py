@@ -78,14 +78,16 @@ def unet_of(policy):
 
 def oracle(policy):
     """A denoiser that reads the clean actions off the conditioning (the state, the first two values)
-    and returns the exact epsilon of its input for them."""
+    and returns its target for them: the exact epsilon of its input, or the clean actions."""
     model = policy.model if policy.config.type == "sdp" else policy.diffusion
     abar_of = model.noise_scheduler.alphas_cumprod.float()
 
     def forward(x, t, global_cond=None):
+        x0 = global_cond[:, None, :2].expand_as(x)
+        if policy.config.prediction_type == "sample":
+            return x0
         t = t if t.ndim == 2 else t.unsqueeze(1).expand(-1, x.shape[1])
         abar = abar_of[t].unsqueeze(-1)
-        x0 = global_cond[:, None, :2]
         return (x - abar.sqrt() * x0) / (1 - abar).sqrt()
 
     return forward
@@ -106,11 +108,14 @@ def test_a_network_that_ignores_the_observation_loses_nothing_when_it_is_shuffle
         assert torch.equal(sums["count"], torch.stack([per_band * 5, per_band * 3]).float())  # 5 + 3 slots
 
 
-@pytest.mark.parametrize("kind", ["sdp", "diffusion"])
+@pytest.mark.parametrize(
+    "kind, prediction_type", [("sdp", "epsilon"), ("diffusion", "epsilon"), ("sdp", "sample")]
+)
 def test_a_network_that_reads_the_actions_off_the_observation_shows_the_gap_in_every_chunk(
-    dataset_root, kind
+    dataset_root, kind, prediction_type
 ):
     policy, preprocessor, dataset = built(kind, dataset_root)
+    policy.config.prediction_type = prediction_type  # scored on its epsilon all the same
     unet_of(policy).forward = oracle(policy)
     sums = probe_policy(policy, preprocessor, dataset, Probe(list(range(48)), bands=4, batch_size=16))
     measured = sums["count"] > 0
