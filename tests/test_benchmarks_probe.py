@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 import torch
-from sdp_test_utils import tiny_config
+from sdp_test_utils import tiny_config, tiny_dp_config
 
 from lerobot_sdp.benchmarks import cli
 from lerobot_sdp.benchmarks.probe import Probe, open_dataset, probe_policy, slot_chunks, window_indices
@@ -45,19 +45,7 @@ def dataset_root(tmp_path_factory):
 
 
 def configs():
-    sdp = tiny_config()
-    from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
-
-    dp = DiffusionConfig(
-        n_action_steps=4,
-        horizon=8,
-        down_dims=(16, 32),
-        diffusion_step_embed_dim=16,
-        num_inference_steps=10,
-        device="cpu",
-        input_features=sdp.input_features,
-        output_features=sdp.output_features,
-    )
+    sdp, dp = tiny_config(), tiny_dp_config(num_inference_steps=10)
     return {"sdp": sdp, "diffusion": dp}
 
 

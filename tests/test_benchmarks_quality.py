@@ -34,18 +34,26 @@ from lerobot_sdp.benchmarks.quality import (
 )
 
 
-def test_tiny_comparison_runs_resumes_and_reports(tmp_path, capsys):
-    make_tiny_pusht_dataset(tmp_path / "data")
-    common = [
+def tiny_quality_args(tmp_path):
+    """The tiny budget on the tiny Push-T dataset in tmp_path/data, into tmp_path/q."""
+    out, data = str(tmp_path / "q"), str(tmp_path / "data")
+    return [
         "quality",
         "--budget",
         "tiny",
         "--output_dir",
-        str(tmp_path / "q"),
+        out,
         "--dataset_repo_id",
         "local/tiny_pusht",
         "--dataset_root",
-        str(tmp_path / "data"),
+        data,
+    ]
+
+
+def test_tiny_comparison_runs_resumes_and_reports(tmp_path, capsys):
+    make_tiny_pusht_dataset(tmp_path / "data")
+    common = [
+        *tiny_quality_args(tmp_path),
         "--curve_every",
         "1",
         "--eval_jobs",
@@ -414,26 +422,9 @@ def test_every_screen_candidate_sets_its_option_and_nothing_else():
 def test_tiny_screen_trains_the_candidates_probes_them_and_resumes(tmp_path, capsys):
     make_tiny_pusht_dataset(tmp_path / "data")
     make_tiny_pusht_dataset(tmp_path / "held_out", n_episodes=1, length=20, seed=1)
-    argv = [
-        "quality",
-        "--budget",
-        "tiny",
-        "--runs",
-        "screen",
-        "--only",
-        "screen_curriculum_switch",
-        "screen_min_snr5",
-        "--output_dir",
-        str(tmp_path / "q"),
-        "--dataset_repo_id",
-        "local/tiny_pusht",
-        "--dataset_root",
-        str(tmp_path / "data"),
-        "--probe_dataset_root",
-        str(tmp_path / "held_out"),
-        "--probe_repo_id",
-        "local/tiny_pusht",
-    ]
+    argv = [*tiny_quality_args(tmp_path), "--runs", "screen", "--only", "screen_curriculum_switch"]
+    argv += ["screen_min_snr5", "--probe_dataset_root", str(tmp_path / "held_out")]
+    argv += ["--probe_repo_id", "local/tiny_pusht"]
     cli.main(argv)
     report = json.loads((tmp_path / "q" / "results.json").read_text())
     assert set(report["rows"]) == {"screen_curriculum_switch", "screen_min_snr5"}
