@@ -14,7 +14,7 @@ from lerobot.configs import NormalizationMode, PreTrainedConfig
 from lerobot.optim import AdamConfig, DiffuserSchedulerConfig, OptimizerConfig
 
 from .geometry import ChunkGeometry
-from .noise_schemes import NoiseSchemeWeights
+from .noise_schemes import CHUNKWISE_GRIDS, NoiseCurriculum, NoiseSchemeWeights
 
 ACTION_PRIMERS = ("zero", "constant", "denoise")
 STEP_CONDITIONINGS = ("flatten", "film_per_slot")
@@ -48,6 +48,13 @@ class SDPConfig(PreTrainedConfig):
             denoise on the first call).
         noise_schemes: training mixture weights of the corruption schemes constant / linear /
             independent / chunkwise (default 0.2 constant + 0.8 chunkwise, the paper's best).
+        chunkwise_grid: where the chunk-wise scheme draws its levels: "sampler" (the default: the
+            inference sampler's N-step grid, s level staircases) or "training_table" (all
+            num_train_timesteps, T/h staircases, as the authors' code; needs T divisible by h).
+        noise_curriculum: constant levels for the first `constant_steps` optimiser steps, then the
+            mixture, reached linearly over `ramp_steps` (a switch when 0). Off by default (all 0).
+        min_snr_gamma: Min-SNR-gamma loss weighting per slot (Hang et al. 2023; e.g. 5.0). None (the
+            default): every slot weighs the same, the paper's Eq. 5.
         use_ema, ema_power, ema_max_decay: EMA of the weights, used for inference in eval mode.
         step_conditioning: how the per-slot noise levels condition the U-Net. "flatten" (the paper):
             the slots' step embeddings are flattened into one vector (ties the network to its horizon).
@@ -121,6 +128,9 @@ class SDPConfig(PreTrainedConfig):
     # SDP
     action_primer: str = "zero"
     noise_schemes: NoiseSchemeWeights = field(default_factory=NoiseSchemeWeights)
+    chunkwise_grid: str = "sampler"
+    noise_curriculum: NoiseCurriculum = field(default_factory=NoiseCurriculum)
+    min_snr_gamma: float | None = None
     # As LeRobot's DP: copy-padded actions past an episode's end stay in the loss (the policy learns
     # to hold the final pose). Masking them made no measurable difference (docs/results.md).
     do_mask_loss_for_padding: bool = False
@@ -166,8 +176,22 @@ class SDPConfig(PreTrainedConfig):
         _check_choice("action_primer", self.action_primer, ACTION_PRIMERS)
         _check_choice("step_conditioning", self.step_conditioning, STEP_CONDITIONINGS)
         _check_choice("sampling", self.sampling, SAMPLINGS)
+        _check_choice("chunkwise_grid", self.chunkwise_grid, CHUNKWISE_GRIDS)
         if isinstance(self.noise_schemes, dict):  # convenience for Python callers
             self.noise_schemes = NoiseSchemeWeights(**self.noise_schemes)
+        if isinstance(self.noise_curriculum, dict):
+            self.noise_curriculum = NoiseCurriculum(**self.noise_curriculum)
+        if self.chunkwise_grid == "training_table" and self.num_train_timesteps % self.n_chunks:
+            raise ValueError(
+                f"chunkwise_grid='training_table' splits the {self.num_train_timesteps} training timesteps "
+                f"into n_chunks={self.n_chunks} equal bands: make `num_train_timesteps` a multiple of "
+                "`n_chunks`, or use `--policy.chunkwise_grid=sampler`."
+            )
+        if self.min_snr_gamma is not None and not self.min_snr_gamma > 0:
+            raise ValueError(
+                f"`min_snr_gamma` must be positive (e.g. 5.0) or null for no weighting, got "
+                f"{self.min_snr_gamma}."
+            )
         if self.num_inference_steps is not None and self.num_inference_steps > self.num_train_timesteps:
             raise ValueError(
                 f"num_inference_steps={self.num_inference_steps} > num_train_timesteps="

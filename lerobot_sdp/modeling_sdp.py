@@ -37,6 +37,7 @@ from .buffer import (
 from .configuration_sdp import SDPConfig
 from .data_parallel import rank_generator
 from .ema import ema_decay, ema_update
+from .loss_weighting import min_snr_weights
 from .model_card import add_introduction
 from .noise_schemes import sample_delays, sample_levels
 from .observations import (
@@ -193,9 +194,16 @@ class SDPModel(DiffusionModel):
         noise = step_noise(plan, sample, generator)
         return run_reverse_steps(self.schedule, self.denoiser(global_cond), sample, plan, noise)
 
-    def compute_loss(self, batch: dict[str, Tensor], generator: torch.Generator | None = None) -> Tensor:
-        """Paper Eq. 5: MSE between the noise (or clean actions) and the prediction, levels per slot.
-        Every random draw (levels, delays, noise) comes from ``generator``, the global RNG when None."""
+    def compute_loss(
+        self,
+        batch: dict[str, Tensor],
+        generator: torch.Generator | None = None,
+        step: Tensor | None = None,
+    ) -> Tensor:
+        """Paper Eq. 5: MSE between the noise (or clean actions) and the prediction, levels per slot,
+        each slot Min-SNR weighted under `min_snr_gamma` (`loss_weighting.py`). ``step``: the
+        optimiser steps taken (0-d, on the device), read by the noise curriculum only. Every random
+        draw (levels, delays, noise) comes from ``generator``, the global RNG when None."""
         trajectory = batch[ACTION]
         if trajectory.shape[1] != self.geometry.horizon:
             raise ValueError(
@@ -203,16 +211,42 @@ class SDPModel(DiffusionModel):
                 f"{self.geometry.horizon}: build the dataset with this config's action_delta_indices."
             )
         global_cond = self.global_conditioning(batch)
-        cfg = self.config
-        levels = sample_levels(
-            cfg.noise_schemes, trajectory.shape[0], self.geometry, self.schedule, generator
-        )
-        levels, committed = sample_delays(levels, self.geometry, generator)
+        levels, committed = self.training_levels(trajectory.shape[0], generator, step)
         eps = gaussian_like(trajectory, generator)
+        return self.denoising_loss(batch, global_cond, levels, eps, committed)
+
+    def training_levels(
+        self, batch_size: int, generator: torch.Generator | None, step: Tensor | None
+    ) -> tuple[Tensor, Tensor | None]:
+        """(B, T) training timesteps of one batch (the mixture, the curriculum, the delays) and the
+        committed slots the loss leaves out (None without `max_delay`)."""
+        cfg = self.config
+        curriculum = cfg.noise_curriculum
+        if curriculum.enabled and step is None:
+            raise ValueError("noise_curriculum needs the training step: pass `step` to compute_loss.")
+        share = curriculum.constant_share(step) if curriculum.enabled else None
+        levels = sample_levels(
+            cfg.noise_schemes, batch_size, self.geometry, self.schedule, generator, cfg.chunkwise_grid, share
+        )
+        return sample_delays(levels, self.geometry, generator)
+
+    def denoising_loss(
+        self,
+        batch: dict[str, Tensor],
+        global_cond: Tensor,
+        levels: Tensor,
+        eps: Tensor,
+        committed: Tensor | None = None,
+    ) -> Tensor:
+        """The loss of one batch at given per-slot ``levels`` (B, T) and noise ``eps``."""
+        cfg = self.config
+        trajectory = batch[ACTION]
         # committed slots (timestep -1) come out clean: abar is 1 there (DDPM, and DDIM's set_alpha_to_one)
         pred = self.denoiser(global_cond)(self.schedule.add_noise(trajectory, eps, levels), levels)
         target = eps if cfg.prediction_type == "epsilon" else trajectory
         loss = F.mse_loss(pred, target, reduction="none")
+        if cfg.min_snr_gamma is not None:
+            loss = loss * min_snr_weights(self.schedule, levels, cfg.min_snr_gamma, cfg.prediction_type)
         mask = None if committed is None else ~committed.unsqueeze(-1)  # committed slots are inputs only
         if cfg.do_mask_loss_for_padding and "action_is_pad" in batch:
             pad = (~batch["action_is_pad"]).unsqueeze(-1)
@@ -278,11 +312,12 @@ class SDPPolicy(PreTrainedPolicy):
         return self.model.parameters()
 
     def update(self) -> None:
-        """Called by lerobot-train after every optimizer step: advance the EMA."""
-        if self.ema_model is None:
-            return
-        decay = ema_decay(self.ema_step, self.config.ema_power, self.config.ema_max_decay)
-        ema_update(self.ema_model, self.model, decay)
+        """Called by lerobot-train after every optimizer step: advance the EMA and the step count.
+        `ema_step` counts optimiser steps with or without EMA (the noise curriculum reads it); it is
+        saved in model.safetensors, so a resumed run (`--resume=true`) continues from its step."""
+        if self.ema_model is not None:
+            decay = ema_decay(self.ema_step, self.config.ema_power, self.config.ema_max_decay)
+            ema_update(self.ema_model, self.model, decay)
         self.ema_step += 1  # on the device: no host read per training step
 
     def reset(self) -> None:
@@ -459,7 +494,8 @@ class SDPPolicy(PreTrainedPolicy):
             for key in self.config.image_features:
                 if self.config.n_obs_steps == 1 and batch[key].ndim == 4:
                     batch[key] = batch[key].unsqueeze(1)
-        return self.model.compute_loss(stack_cameras(self.config, batch), self._training_generator()), None
+        batch = stack_cameras(self.config, batch)
+        return self.model.compute_loss(batch, self._training_generator(), self.ema_step), None
 
     def _training_generator(self) -> torch.Generator | None:
         """This rank's stream of training noise under data parallelism, the global RNG (None) in one

@@ -7,7 +7,14 @@ level per slot) and Fig. "Trajectory Noise Corruptions"; docs/algorithm.md, sect
 - linear: t rises linearly along the slots from 0 to T-1 (deterministic, as in the authors' code);
 - independent: i.i.d. t ~ U{0..T-1} per slot (Diffusion Forcing style);
 - chunkwise: chunk i in the band of steps remaining [i*s+1, (i+1)*s], one offset shared by all
-  chunks of the sample, so training sees exactly the staircases that streaming inference visits.
+  chunks of the sample, so training sees exactly the staircases that streaming inference visits
+  (`chunkwise_grid="sampler"`); or, as the authors' ``get_diff_steps_training`` draws it, over the
+  whole training table: chunk i at t = i*T/h + o - 1, o ~ U{1..T/h} (`chunkwise_grid="training_table"`,
+  T/h level staircases instead of s).
+
+Curriculum (`NoiseCurriculum`): a sample is drawn at one constant level with probability c(step),
+else from the mixture; c is 1 for the first `constant_steps` optimiser steps, then falls linearly to 0
+over `ramp_steps` (a switch when 0).
 
 Inference delay (`max_delay` > 0): each sample also draws a delay d ~ U{0..max_delay}; its d
 committed slots (the actions that run while the chunk is computed, `ChunkGeometry.delayed`) are
@@ -102,6 +109,20 @@ def chunkwise_levels(
     return schedule.train_timesteps(k)
 
 
+def chunkwise_table_levels(
+    batch_size: int,
+    geometry: ChunkGeometry,
+    schedule: PerSlotSchedule,
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    """Chunk-wise over all T training timesteps (the authors' draw): chunk i at t = i*T/h + o - 1,
+    one o ~ U{1..T/h} shared by the chunks of a sample; never clean, as on the sampler's grid."""
+    band = schedule.num_train_timesteps // geometry.n_chunks
+    device = device_of(schedule)
+    offset = torch.randint(1, band + 1, (batch_size, 1), device=device, generator=generator)
+    return geometry.slot_chunk_on(device).unsqueeze(0) * band + offset - 1
+
+
 def device_of(schedule: PerSlotSchedule) -> torch.device:
     return schedule.timestep_table.device
 
@@ -112,6 +133,37 @@ SCHEMES = {
     "independent": independent_levels,
     "chunkwise": chunkwise_levels,
 }
+# where the chunk-wise scheme takes its levels from: the sampler's N-step grid or all T timesteps
+CHUNKWISE_GRIDS = {"sampler": chunkwise_levels, "training_table": chunkwise_table_levels}
+
+
+@dataclass
+class NoiseCurriculum:
+    """Constant levels first, the mixture after (`--policy.noise_curriculum.constant_steps=2000`):
+    every sample is drawn at one constant level for the first `constant_steps` optimiser steps, then
+    the share of constant-level samples falls linearly to 0 over `ramp_steps` (0: a switch). All
+    zero (the default): the mixture from the first step."""
+
+    constant_steps: int = 0
+    ramp_steps: int = 0
+
+    def __post_init__(self):
+        if self.constant_steps < 0 or self.ramp_steps < 0:
+            raise ValueError(
+                f"noise_curriculum steps must be >= 0, got constant_steps={self.constant_steps}, "
+                f"ramp_steps={self.ramp_steps}."
+            )
+
+    @property
+    def enabled(self) -> bool:
+        return self.constant_steps + self.ramp_steps > 0
+
+    def constant_share(self, step: Tensor) -> Tensor:
+        """c(step): the probability that a sample at optimiser step ``step`` (0-d, on the device; the
+        first step is 0) is drawn at one constant level instead of from the mixture."""
+        if self.ramp_steps == 0:
+            return (step < self.constant_steps).float()
+        return (1.0 - (step - self.constant_steps).float() / self.ramp_steps).clamp(0.0, 1.0)
 
 
 def sample_levels(
@@ -120,9 +172,14 @@ def sample_levels(
     geometry: ChunkGeometry,
     schedule: PerSlotSchedule,
     generator: torch.Generator | None = None,
+    chunkwise_grid: str = "sampler",
+    constant_share: Tensor | None = None,
 ) -> Tensor:
-    """Training timesteps (B, horizon) from the weighted mixture: one scheme drawn per sample. Every
-    draw comes from ``generator`` (the global RNG when None)."""
+    """Training timesteps (B, horizon) from the weighted mixture: one scheme drawn per sample, the
+    chunk-wise one on ``chunkwise_grid`` (`CHUNKWISE_GRIDS`). With ``constant_share`` (a curriculum's
+    c(step)) each sample is then replaced by a constant-level one with that probability. Every draw
+    comes from ``generator`` (the global RNG when None)."""
+    draws = SCHEMES | {"chunkwise": CHUNKWISE_GRIDS[chunkwise_grid]}
     w = weights.as_dict()
     active = [name for name in SCHEMES if w[name] > 0]
     device = device_of(schedule)
@@ -132,8 +189,13 @@ def sample_levels(
     choice = torch.zeros(batch_size, dtype=torch.long, device=device)
     for bound in bounds[:-1]:
         choice += u >= bound
-    levels = torch.stack([SCHEMES[name](batch_size, geometry, schedule, generator) for name in active])
-    return levels[choice, torch.arange(batch_size, device=device)]
+    levels = torch.stack([draws[name](batch_size, geometry, schedule, generator) for name in active])
+    levels = levels[choice, torch.arange(batch_size, device=device)]
+    if constant_share is None:
+        return levels
+    constant = constant_levels(batch_size, geometry, schedule, generator)
+    take = torch.rand(batch_size, device=device, generator=generator) < constant_share
+    return torch.where(take.unsqueeze(-1), constant, levels)
 
 
 def sample_delays(

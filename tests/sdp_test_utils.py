@@ -38,6 +38,24 @@ def tiny_config(image: bool = False, **overrides):
     return SDPConfig(**kwargs)
 
 
+def tiny_dp_config(**overrides):
+    """LeRobot's Diffusion Policy at `tiny_config`'s size and features (horizon 8, 4 actions per chunk)."""
+    from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
+
+    sdp = tiny_config()
+    kwargs = dict(
+        n_action_steps=4,
+        horizon=8,
+        down_dims=(16, 32),
+        diffusion_step_embed_dim=16,
+        num_inference_steps=4,
+        device="cpu",
+        input_features=sdp.input_features,
+        output_features=sdp.output_features,
+    )
+    return DiffusionConfig(**(kwargs | overrides))
+
+
 def observation(config, batch_size: int = 2, seed: int | None = None):
     """One environment step's (normalised) observation batch for `config`'s input features."""
     import torch

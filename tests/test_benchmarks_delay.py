@@ -8,7 +8,7 @@ import sys
 
 import pytest
 import torch
-from sdp_test_utils import PUSHT_KEYPOINT_STATS, save_tiny_policy, tiny_config
+from sdp_test_utils import PUSHT_KEYPOINT_STATS, save_tiny_policy, tiny_config, tiny_dp_config
 from torch import nn
 
 from lerobot_sdp.benchmarks.virtual_clock import DelayedControl
@@ -126,21 +126,10 @@ def test_impossible_cells_are_named(kind, mode, delay, match):
 
 
 def save_tiny_dp(path):
-    from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
     from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
     from lerobot.policies.factory import make_pre_post_processors
 
-    sdp = tiny_config()
-    cfg = DiffusionConfig(
-        n_action_steps=4,
-        horizon=8,
-        down_dims=(16, 32),
-        diffusion_step_embed_dim=16,
-        num_inference_steps=4,
-        device="cpu",
-        input_features=sdp.input_features,
-        output_features=sdp.output_features,
-    )
+    cfg = tiny_dp_config()
     DiffusionPolicy(cfg).save_pretrained(path)
     for pipeline in make_pre_post_processors(cfg, dataset_stats=PUSHT_KEYPOINT_STATS):
         pipeline.save_pretrained(path)

@@ -34,18 +34,26 @@ from lerobot_sdp.benchmarks.quality import (
 )
 
 
-def test_tiny_comparison_runs_resumes_and_reports(tmp_path, capsys):
-    make_tiny_pusht_dataset(tmp_path / "data")
-    common = [
+def tiny_quality_args(tmp_path):
+    """The tiny budget on the tiny Push-T dataset in tmp_path/data, into tmp_path/q."""
+    out, data = str(tmp_path / "q"), str(tmp_path / "data")
+    return [
         "quality",
         "--budget",
         "tiny",
         "--output_dir",
-        str(tmp_path / "q"),
+        out,
         "--dataset_repo_id",
         "local/tiny_pusht",
         "--dataset_root",
-        str(tmp_path / "data"),
+        data,
+    ]
+
+
+def test_tiny_comparison_runs_resumes_and_reports(tmp_path, capsys):
+    make_tiny_pusht_dataset(tmp_path / "data")
+    common = [
+        *tiny_quality_args(tmp_path),
         "--curve_every",
         "1",
         "--eval_jobs",
@@ -370,3 +378,65 @@ def test_paper_budget_is_the_shipped_paper_config(tmp_path, monkeypatch):
     (tmp_path / "pusht_state_paper.json").write_text(json.dumps(edited))
     monkeypatch.setattr(shipped_configs, "root", lambda: tmp_path)
     assert quality.paper_budget().steps == 5_000 and quality.paper_budget().down_dims == (8, 16)
+
+
+def test_every_screen_candidate_sets_its_option_and_nothing_else():
+    import draccus
+
+    from lerobot_sdp import SDPConfig
+    from lerobot_sdp.benchmarks.quality import screen_runs
+    from lerobot_sdp.noise_schemes import NoiseCurriculum
+
+    budget = resolve_budget(argparse.Namespace(budget="robomimic_cpu", env="robomimic", steps=8000))[1]
+    runs = {r.name: r for r in screen_runs(budget, "cpu")}
+    assert "--policy.type=diffusion" in runs["dp"].policy_args and runs["dp"].steps == 8000
+
+    def parsed(name):
+        flags = [a.removeprefix("--policy.") for a in runs[name].policy_args if a != "--policy.type=sdp"]
+        return draccus.parse(SDPConfig, args=[f"--{a}" for a in flags])
+
+    base = parsed("sdp_h2")
+    assert base.n_chunks == 2 and not base.use_ema and base.noise_schemes.as_dict()["chunkwise"] == 0.8
+    changed = {
+        "screen_training_table": {"chunkwise_grid": "training_table"},
+        "screen_curriculum_switch": {"noise_curriculum": NoiseCurriculum(constant_steps=2000)},
+        "screen_curriculum_ramp": {"noise_curriculum": NoiseCurriculum(ramp_steps=4000)},
+        "screen_min_snr5": {"min_snr_gamma": 5.0},
+        "screen_ema": {"use_ema": True},
+    }
+    for name, fields in changed.items():
+        cfg = parsed(name)
+        for field, value in fields.items():
+            assert getattr(cfg, field) == value, name
+            setattr(cfg, field, getattr(base, field))
+        assert cfg == base, name  # every other setting as the default recipe's
+    const50 = parsed("screen_const50")
+    assert const50.noise_schemes.as_dict() == {
+        "constant": 0.5,
+        "linear": 0.0,
+        "independent": 0.0,
+        "chunkwise": 0.5,
+    }
+
+
+def test_tiny_screen_trains_the_candidates_probes_them_and_resumes(tmp_path, capsys):
+    make_tiny_pusht_dataset(tmp_path / "data")
+    make_tiny_pusht_dataset(tmp_path / "held_out", n_episodes=1, length=20, seed=1)
+    argv = [*tiny_quality_args(tmp_path), "--runs", "screen", "--only", "screen_curriculum_switch"]
+    argv += ["screen_min_snr5", "--probe_dataset_root", str(tmp_path / "held_out")]
+    argv += ["--probe_repo_id", "local/tiny_pusht"]
+    cli.main(argv)
+    report = json.loads((tmp_path / "q" / "results.json").read_text())
+    assert set(report["rows"]) == {"screen_curriculum_switch", "screen_min_snr5"}
+    assert {r["policy"] for r in report["probe"]["rows"]} == {"screen_curriculum_switch", "screen_min_snr5"}
+    assert report["probe"]["settings"]["n_windows"] == 20
+    text = (tmp_path / "q" / "results.md").read_text()
+    assert "### Screen of the training recipes (2 steps each)" in text and "| screen_min_snr5 |" in text
+    assert "### Probe: the final models with true and shuffled observations" in text
+    config = json.loads(
+        (tmp_path / "q/runs/screen_min_snr5/train/checkpoints/last/pretrained_model/config.json").read_text()
+    )
+    assert config["min_snr_gamma"] == 5.0
+    capsys.readouterr()
+    cli.main([*argv, "--status"])
+    assert capsys.readouterr().out.count("evaluated") == 2

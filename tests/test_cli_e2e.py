@@ -133,3 +133,39 @@ def test_push_to_hub_uploads_weights_config_processors_and_card(tmp_path):
     assert any(name.startswith("policy_preprocessor_step_") for name in uploaded)
     card = next(record.rglob("README.md")).read_text()
     assert "Streaming Diffusion Policy (SDP)" in card and "sdp" in card
+
+
+def test_a_resumed_run_continues_the_noise_curriculum_from_its_step(tmp_path):
+    """`lerobot-train --resume=true` rebuilds the policy from the checkpoint: the step the curriculum
+    reads (`ema_step`, counted with or without EMA) comes back with it. A 4-step run with a checkpoint
+    at step 2 is cut back to that checkpoint and resumed: it ends at step 4, not 2."""
+    import shutil
+
+    from safetensors.torch import load_file
+
+    root = tmp_path / "dataset"
+    make_tiny_pusht_dataset(root)
+    train = tmp_path / "train"
+    args = train_args(root, train, image=False)
+    args = [a for a in args if not a.startswith(("--steps=", "--save_freq="))]
+    curriculum = [
+        "--policy.use_ema=false",
+        "--policy.noise_curriculum.constant_steps=3",
+        "--steps=4",
+        "--save_freq=2",
+    ]
+    run([str(BIN / "lerobot-train"), *args, *curriculum])
+    checkpoints = train / "checkpoints"
+
+    def step_of(name):
+        return int(load_file(checkpoints / name / "pretrained_model" / "model.safetensors")["ema_step"])
+
+    assert step_of("000002") == 2 and step_of("000004") == 4
+    shutil.rmtree(checkpoints / "000004")  # as if the run had stopped after its step-2 checkpoint
+    (checkpoints / "last").unlink()
+    (checkpoints / "last").symlink_to("000002")
+    config = checkpoints / "last" / "pretrained_model" / "train_config.json"
+    run([str(BIN / "lerobot-train"), f"--config_path={config}", "--resume=true"])
+    assert step_of("000004") == 4
+    saved = json.loads((checkpoints / "000004" / "pretrained_model" / "config.json").read_text())
+    assert saved["noise_curriculum"] == {"constant_steps": 3, "ramp_steps": 0} and not saved["use_ema"]

@@ -17,6 +17,7 @@ from . import (
     delay,
     deployment,
     latency,
+    probe,
     quality,
     server_load,
     throughput,
@@ -34,6 +35,7 @@ SUBCOMMANDS: dict[str, ModuleType] = {
     "delay": delay,
     "server-load": server_load,
     "animation": animation,
+    "probe": probe,
 }
 
 

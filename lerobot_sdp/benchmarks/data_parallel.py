@@ -73,7 +73,8 @@ def train_args(args: argparse.Namespace, spec: dict) -> list[str]:
 
 
 def ema_updates(model_dir: Path) -> int | None:
-    """The EMA's update count saved in a checkpoint (None for a policy without EMA)."""
+    """The `update()` count saved in an SDP checkpoint (`ema_step`: one per optimiser step, with or
+    without EMA); None for a policy that keeps none (LeRobot's DP)."""
     from safetensors import safe_open
 
     with safe_open(str(model_dir / "model.safetensors"), "pt") as f:

@@ -48,6 +48,11 @@ def add_training_arguments(p: argparse.ArgumentParser, several_configs: bool = F
         default=DEFAULT_CONFIG,  # argparse applies the type to it: a path, a list of one after configs()
         help="a config file, or the name of a shipped one (python -m lerobot_sdp.shipped_configs)",
     )
+    add_dataset_arguments(p)
+
+
+def add_dataset_arguments(p: argparse.ArgumentParser) -> None:
+    """`--dataset_root` (required) and `--repo_id` of a local LeRobotDataset."""
     p.add_argument(
         "--dataset_root", type=Path, required=True, help="local LeRobotDataset (e.g. the converted zarr)"
     )

@@ -7,6 +7,11 @@ episode seeds (batched sync envs), with the same data, U-Net size, observation h
 size, steps, learning-rate schedule and seed for every policy. SDP is trained without EMA here
 because LeRobot's Diffusion Policy has none: the two differ only in how they corrupt and sample.
 
+`--runs screen` trains LeRobot's DP, SDP h = 2 with the default recipe and SDP h = 2 with each
+candidate training recipe (docs/algorithm.md, section 10) on one schedule and recording, then probes
+every final model (`probe.py`) on held-out windows: `--probe_dataset_root`, or for robomimic 20
+demonstrations recorded from seed 200000 into OUTPUT_DIR/probe_data.
+
 Runs resume where they stopped (rerun the same command); `--status` prints where each run stands.
 Results: OUTPUT_DIR/results.json and OUTPUT_DIR/results.md. `--eval_seed N` evaluates the same trained
 models on the episodes from seed N on (held-out episodes, for a configuration chosen on the default
@@ -32,8 +37,8 @@ from ..pusht.evaluation import EVAL_SEED, OBS_TYPE, pusht_eval_args
 from ..robomimic.demonstrators import DEMONSTRATORS
 from ..robomimic.evaluation import EVAL_SEED as ROBOMIMIC_EVAL_SEED
 from ..robomimic.evaluation import robomimic_eval_args
-from . import cost_sweep
-from .curves import checkpoint_steps, episode_stats, plot, step_logs, train_wall_s, wall_time_at
+from . import cost_sweep, probe
+from .curves import checkpoint_steps, episode_stats, loss_logs, plot, step_logs, train_wall_s, wall_time_at
 from .matched_dp import matching_dp_flags
 from .report import table, with_se, write_json
 
@@ -203,6 +208,31 @@ def warmstart_runs(budget: Budget, device: str, dp_model: Path) -> list[Run]:
     ]
 
 
+# the probe's held-out robomimic demonstrations: seeds far from the training recording's (100000 on)
+PROBE_DEMO_SEED = 200_000
+PROBE_DEMOS = 20
+
+
+def screen_runs(budget: Budget, device: str) -> list[Run]:
+    """LeRobot's DP, SDP h = 2 with the default recipe, and SDP h = 2 with each candidate recipe, all
+    on the budget's schedule: chunk-wise levels over the whole training table, constant levels for the
+    first quarter then the mixture, a ramp from constant to the mixture over the first half, 50 %
+    constant, Min-SNR-5 weights, EMA (SDP only: LeRobot 0.6.1's DP has none)."""
+    steps = budget.steps
+    base = sdp_args(budget, device, 2)
+    without_ema = [a for a in base if not a.startswith("--policy.use_ema=")]
+    candidates = {
+        "screen_training_table": [*base, "--policy.chunkwise_grid=training_table"],
+        "screen_curriculum_switch": [*base, f"--policy.noise_curriculum.constant_steps={max(1, steps // 4)}"],
+        "screen_curriculum_ramp": [*base, f"--policy.noise_curriculum.ramp_steps={max(1, steps // 2)}"],
+        "screen_const50": sdp_args(budget, device, 2, {"constant": 0.5, "chunkwise": 0.5}),
+        "screen_min_snr5": [*base, "--policy.min_snr_gamma=5.0"],
+        "screen_ema": [*without_ema, "--policy.use_ema=true"],
+    }
+    runs = [Run("dp", policy_args(budget, "diffusion", device), steps), Run("sdp_h2", base, steps)]
+    return runs + [Run(name, flags, steps) for name, flags in candidates.items()]
+
+
 def with_step_conditioning(runs: list[Run], choice: str | None) -> list[Run]:
     """The SDP runs trained with `--policy.step_conditioning=CHOICE` (those that set none already);
     DP's runs and the runs that evaluate another's model are unchanged."""
@@ -271,6 +301,8 @@ def execute(run: Run, plan: Plan, echo: bool = True) -> dict:
     cost = stream_cost(model_dir, overrides=run.eval_overrides)  # alone: no evaluation runs now
     row = {"run": run.name, **episode_stats(here / "eval"), "steps": run.steps, **cost}
     row["train_wall_s"] = round(train_wall_s(root / "train.log", run.steps, timing["train_wall_s"]), 1)
+    losses = loss_logs(root / "train.log", run.steps) if (root / "train.log").exists() else []
+    row["final_loss"] = losses[-1]["loss"] if losses else None
     if every:
         row["curve"] = points
     return row
@@ -362,6 +394,7 @@ def markdown(rows: dict[str, dict], budget_name: str, budget: Budget) -> str:
         }
         out += ["", f"### Ablations (reduced budget: {budget.ablation_steps} steps)", ""]
         out += table(header, [cells(n, rows[n], f"{paper[n]:.2f}") for n in ablations])
+    out += screen_markdown(rows, budget.steps)
     curves = [n for n in rows if rows[n].get("curve")]
     if curves:
         out += ["", "### Learning curves (every checkpoint on the same episodes)", ""]
@@ -383,6 +416,36 @@ def markdown(rows: dict[str, dict], budget_name: str, budget: Budget) -> str:
     return "\n".join(out) + "\n"
 
 
+def screen_markdown(rows: dict[str, dict], steps: int) -> list[str]:
+    """The screen's table (DP, SDP h = 2 and the candidates), or nothing without a screen run."""
+    screened = [n for n in rows if n.startswith("screen_")]
+    if not screened:
+        return []
+
+    def cells(name: str, row: dict) -> list:
+        wall = row["train_wall_s"]
+        return [
+            name,
+            with_se(row, "pc_success", 1),
+            f"{row['denoiser_calls_per_chunk']:g}",
+            f"{wall:.0f}",
+            f"{row['steps'] / wall:.2f}" if wall else "-",
+            "-" if row.get("final_loss") is None else f"{row['final_loss']:.4f}",
+            row["n_episodes"],
+        ]
+
+    header = ["run", "pc_success", "denoiser calls / chunk", "train wall (s)", "steps / s", "final loss"]
+    out = ["", f"### Screen of the training recipes ({steps} steps each)", ""]
+    out += [
+        "SDP h = 2 throughout; `screen_ema` alone trains with EMA (LeRobot 0.6.1's DP has none). The loss "
+        "is lerobot-train's last logged value: Min-SNR weights change what it measures.",
+        "",
+    ]
+    return out + table(
+        [*header, "episodes"], [cells(n, rows[n]) for n in ("dp", "sdp_h2", *screened) if n in rows]
+    )
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--budget", choices=[*BUDGETS, "paper"], default=None, help="default: cpu (Push-T), robomimic_cpu"
@@ -397,11 +460,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--runs",
-        choices=["comparison", "horizon_control", "ablations", "warmstart", "all"],
+        choices=["comparison", "horizon_control", "ablations", "warmstart", "screen", "all"],
         default="comparison",
         help="horizon_control: DP at SDP h = 4's and h = 2's horizons; "
-        "warmstart: SDP fine-tuned from the comparison's trained DP (run the comparison first)",
+        "warmstart: SDP fine-tuned from the comparison's trained DP (run the comparison first); "
+        "screen: DP and SDP h = 2 with each candidate training recipe, then the probe (not part of all)",
     )
+    parser.add_argument(
+        "--probe_dataset_root",
+        type=Path,
+        default=None,
+        help="held-out LeRobotDataset the screen's probe runs on (default for robomimic: "
+        f"{PROBE_DEMOS} demonstrations recorded from seed {PROBE_DEMO_SEED} into OUTPUT_DIR/probe_data)",
+    )
+    parser.add_argument("--probe_repo_id", default="local/probe", help="the repo_id of --probe_dataset_root")
     parser.add_argument(
         "--only",
         nargs="+",
@@ -550,7 +622,8 @@ def run(args: argparse.Namespace) -> dict:
             f"The warm-start runs start from the comparison's trained DP, and {dp_model(output_dir)} does "
             "not exist: run `--runs comparison` with this --output_dir first."
         )
-    kinds = list(runs) if args.runs == "all" else [args.runs]
+    runs["screen"] = screen_runs  # shares dp and sdp_h2 with the comparison: not part of "all"
+    kinds = [k for k in runs if k != "screen"] if args.runs == "all" else [args.runs]
     every_run = [r for kind in kinds for r in runs[kind](budget, args.device)]
     selected = only(with_step_conditioning(every_run, args.step_conditioning), args.only)
     eval_seed, eval_args, seed_dir = evaluation(args, budget)
@@ -589,6 +662,9 @@ def run(args: argparse.Namespace) -> dict:
                 f"{task_label(args)}, budget {budget_name}, {episodes} per point",
             )
         print("\n".join(status(selected, output_dir, seed_dir)), flush=True)
+    if args.runs == "screen":
+        report["probe"] = probe_screen(args, every_run, output_dir)
+        write_report(report, report_dir, budget)
     if args.sweep:
         sweep = run_sweep(selected, plan)
         report["sweep"] = report.get("sweep", {}) | sweep
@@ -604,7 +680,31 @@ def write_report(report: dict, report_dir: Path, budget: Budget) -> None:
     write_json(report_dir / "results.json", report)
     text = markdown(report["rows"], report["budget"], budget)
     text += sweep_markdown(report["sweep"]) if "sweep" in report else ""
+    if report.get("probe"):
+        text += "\n### Probe: the final models with true and shuffled observations\n\n"
+        text += probe.markdown(report["probe"])
     (report_dir / "results.md").write_text(text)
+
+
+def probe_screen(args: argparse.Namespace, runs: list[Run], output_dir: Path) -> dict:
+    """The probe's report on every screen run trained so far, on the held-out data (empty, with a
+    message, when there is none)."""
+    if args.probe_dataset_root:
+        root, repo_id = args.probe_dataset_root, args.probe_repo_id
+    elif args.env == "robomimic":
+        from ..robomimic.job import record_demonstrations  # robosuite loads here
+
+        held_out = record_demonstrations(args.task, PROBE_DEMOS, output_dir / "probe_data", PROBE_DEMO_SEED)
+        root, repo_id = Path(held_out["root"]), held_out["repo_id"]
+    else:
+        print("[probe] no held-out data: pass --probe_dataset_root to probe the screen's models", flush=True)
+        return {}
+    models = {}
+    for run in runs:
+        trained = model_root(output_dir, run) / "train"
+        if trained_steps(trained) >= run.steps:
+            models[run.name] = last_checkpoint(trained) / "pretrained_model"
+    return probe.probe_models(models, root, repo_id, device=args.device) if models else {}
 
 
 def run_in_parallel(runs: list[Run], execute_run: Callable[[Run], dict], jobs: int) -> Iterator[dict]:
