@@ -9,7 +9,7 @@ import pytest
 
 PKG = Path(__file__).resolve().parents[1] / "lerobot_sdp"
 LAYERS = {
-    "core": ["schedule", "geometry", "noise_schemes", "buffer", "unet", "ema"],
+    "core": ["schedule", "geometry", "noise_schemes", "loss_weighting", "buffer", "unet", "ema"],
     "adapter": [
         "configuration_sdp",
         "modeling_sdp",
@@ -24,6 +24,7 @@ LAYERS = {
         "rtc",
         "chunk_cost",
         "data_parallel",
+        "memory_dataset",
     ],
     "tasks": ["main_job", "robots", "pusht", "robomimic", "policy_server", "protocol_pickle"],
     "benchmarks": ["benchmarks"],
