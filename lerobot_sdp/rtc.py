@@ -21,6 +21,19 @@ from torch import Tensor
 from .configuration_sdp import SDPConfig
 
 
+def engine_problem(config: SDPConfig) -> str | None:
+    """Why the engine that set ``config.rtc_config`` (`lerobot-rollout` does) cannot run SDP, or None."""
+    rtc_config = getattr(config, "rtc_config", None)
+    if rtc_config is not None and not rtc_config.enabled:
+        return (
+            "SDP under the RTC engine needs --inference.rtc.enabled=true (the default): with it false, "
+            "LeRobot's ActionQueue appends each result after the actions still queued instead of replacing "
+            "them, and SDP's result repeats those actions (the leftover), so the robot would run them twice. "
+            "Drop --inference.rtc.enabled=false, or use --inference.type=sync."
+        )
+    return None
+
+
 def rest_of_last_chunk(config: SDPConfig, left_over: Tensor) -> Tensor:
     """The previous chunk's unexecuted actions (T, A), without the engine's zero padding; a clear error
     when the engine calls too early for one chunk per call, or with more left than `max_delay`."""
