@@ -122,8 +122,8 @@ def bind(schedule: PerSlotSchedule, geometry: ChunkGeometry, denoiser: Denoiser)
 
 
 STREAM_RESET = (
-    "The stream was reset (an episode's end, a client's Ready) while this call was starting it: the call "
-    "belongs to the old episode and keeps nothing; the next call starts the new episode's stream."
+    "The stream was reset (an episode's end, a client's Ready) during this call: its chunk belongs to the "
+    "episode that ended and is dropped; the next call starts the new episode's stream."
 )
 
 
@@ -221,7 +221,9 @@ class StreamingBuffer:
         ``window`` of ``committed`` slots, keep the shifted buffer, return the clean chunk (B, Tb, A).
         ``step`` is `stream_step` with its schedule, geometry and denoiser bound (`bind`), or the
         model's conditioned, cached or compiled form of it. If ``step`` raises, the buffer is left as
-        it was; if ``clear`` ran meanwhile, or since ``generation`` was read, it stays cleared."""
+        it was. If ``clear`` ran meanwhile, or since ``generation`` was read, it stays cleared and the
+        call raises `StreamResetError`: its chunk belongs to the episode that ended (LeRobot's RTC
+        engine would queue it in the next one)."""
         with self._lock:
             if generation is not None and generation != self._generation:
                 raise StreamResetError(STREAM_RESET)
@@ -232,7 +234,8 @@ class StreamingBuffer:
         noise = StreamNoise(step_noise(plan, window, generator), gaussian_like(window, generator))
         chunk, sample = step(window, plan, noise, committed)
         with self._lock:
-            if generation == self._generation:
-                self.sample, self.last_chunk = sample, chunk
-                self._past_noise = noise.shift[:, : self.geometry.n_past]
+            if generation != self._generation:  # its chunk would run in the episode that followed
+                raise StreamResetError(STREAM_RESET)
+            self.sample, self.last_chunk = sample, chunk
+            self._past_noise = noise.shift[:, : self.geometry.n_past]
         return chunk

@@ -15,6 +15,7 @@ from . import (
     data_parallel,
     delay,
     deployment,
+    deployment_schedules,
     latency,
     quality,
     server_load,
@@ -32,6 +33,7 @@ SUBCOMMANDS: dict[str, ModuleType] = {
     "deployment": deployment,
     "delay": delay,
     "server-load": server_load,
+    "schedules": deployment_schedules,
 }
 
 
