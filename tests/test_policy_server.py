@@ -680,17 +680,20 @@ def test_a_vanished_clients_session_is_dropped_without_any_other_call(server_mod
     sweeper drops it (and frees its policy) within the timeout and a quarter."""
     import weakref
 
-    service = server_mod.SDPPolicyServer(server_mod.SDPPolicyServerConfig(session_timeout_s=0.2))
+    config = server_mod.SDPPolicyServerConfig(host="127.0.0.1", port=free_port(), session_timeout_s=0.2)
+    grpc_server, service, _ = server_mod.start_server(config)
     session = service.sessions["ipv4:127.0.0.1:1"] = server_mod.ClientPolicyServer(service.config)
     session.policy = torch.nn.Linear(1, 1)
     session.policy.reset = lambda: None
     policy = weakref.ref(session.policy)
     del session
-    thread = service.start_sweeping()
     try:
         wait_for(lambda: not service.sessions, timeout=0.2 * 1.25 + 0.2)
         assert policy() is None  # nothing else held it
     finally:
+        grpc_server.stop(grace=None)
         service.close()
-    thread.join(timeout=1)
-    assert not thread.is_alive()
+    sweeper = [t for t in threading.enumerate() if t.name == "sdp-session-sweeper"]
+    for thread in sweeper:
+        thread.join(timeout=1)
+    assert not any(t.is_alive() for t in sweeper)
