@@ -505,7 +505,8 @@ MUTANTS = [
       "if False:",
       "a stream restarted past the plan is timed from t: the client drops its first action"),
     M("E10", "buffer.py",
-      "                raise StreamResetError(STREAM_RESET)\n            self.sample, self.last_chunk, self._past_noise = sample, None, None",
+      "                raise StreamResetError(STREAM_RESET)\n            self.sample, self.last_chunk, "
+      "self._past_noise = sample, None, None",
       "                pass\n            self.sample, self.last_chunk, self._past_noise = sample, None, None",
       "prime() ignores a reset since the call began: the stream is primed on the old episode"),
     M("E11", "modeling_sdp.py",
@@ -513,7 +514,8 @@ MUTANTS = [
       "self._buffer.prime(primer, generator)",
       "the policy primes without the generation it read: a reset meanwhile is undone"),
     M("E12", "buffer.py",
-      "its chunk would run in the episode that followed\n                raise StreamResetError(STREAM_RESET)",
+      "its chunk would run in the episode that followed\n"
+      "                raise StreamResetError(STREAM_RESET)",
       "its chunk would run in the episode that followed\n                return chunk",
       "a call that outlived a reset hands the old episode's chunk on (the RTC engine would queue it)"),
     M("E13", "rtc.py",
