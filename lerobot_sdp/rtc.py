@@ -12,7 +12,8 @@ So SDP answers one slot for tick t (already run, always dropped), the rest (tick
 then the buffer's next chunk (from t + K + 1): every streamed action runs once, none is skipped. A
 policy trained with `max_delay` denoises that chunk with the action of tick t and the rest as K + 1
 committed slots, as in training, where the observation of tick t precedes its own action. SDP
-streams one chunk per call, so the engine must call once per chunk (docs/deployment.md).
+streams one chunk per call, so the engine must call once per chunk (docs/deployment.md), and it must
+replace its queue with each result (`--inference.rtc.enabled=true`, the default; `engine_problem`).
 """
 
 import torch
