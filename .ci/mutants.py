@@ -38,7 +38,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 PKG = "lerobot_sdp"
-COPIED = [PKG, "tests", "configs", "pyproject.toml", "lerobot_policy_sdp.py", "README.md"]
+COPIED = [PKG, "tests", "configs", "docs/upstream", "pyproject.toml", "lerobot_policy_sdp.py", "README.md"]
 # Order matters only for speed (-x stops at the first failure): the buffer-contents tests kill most
 # mutants of every module within seconds, the policy-level files are the slowest.
 CORE_TESTS = [

@@ -376,7 +376,7 @@ class AsyncRun:
     def check_idle(self, tick: int) -> None:
         """Since the last failed call ended (if it did during this wait), the robot waits at most what
         the calls in flight take, and two ticks for the loop's phase and the client's next send."""
-        since = max(self.clock() - self.idle_run * DT, self.failed_until)
+        since = max(self.clock() - self.idle_run * DT, min(self.failed_until, self.clock()))
         waited = round((self.clock() - since) / DT)
         busy_s = sum(
             min(end, self.clock()) - max(start, since - DT) for start, end in self.calls if end > since - DT
