@@ -121,6 +121,16 @@ def bind(schedule: PerSlotSchedule, geometry: ChunkGeometry, denoiser: Denoiser)
     return functools.partial(stream_step, schedule, geometry, denoiser)
 
 
+STREAM_RESET = (
+    "The stream was reset (an episode's end, a client's Ready) during this call: its chunk belongs to the "
+    "episode that ended and is dropped; the next call starts the new episode's stream."
+)
+
+
+class StreamResetError(RuntimeError):
+    """A call that began before a `clear` from another thread: its stream is gone."""
+
+
 class StreamingBuffer:
     """Persistent buffer of future actions at increasing noise levels. Plain object state: it is
     never part of the model's state dict and is dropped by ``clear`` (episode end, batch change)."""
@@ -138,6 +148,12 @@ class StreamingBuffer:
     @property
     def batch_size(self) -> int | None:
         return None if self.sample is None else self.sample.shape[0]
+
+    @property
+    def generation(self) -> int:
+        """How many times the buffer was cleared: a call reads it first and hands it to `prime` and
+        `stream_step`, so that a `clear` from another thread in between makes the call keep nothing."""
+        return self._generation
 
     def clear(self) -> None:
         with self._lock:
@@ -159,11 +175,16 @@ class StreamingBuffer:
             )
         return self._plans[committed]
 
-    def prime(self, primer: Tensor, generator: torch.Generator | None = None) -> None:
-        """Noise a clean (normalised) primer sequence (B, T, A) to the start levels (paper Eq. 4)."""
+    def prime(
+        self, primer: Tensor, generator: torch.Generator | None = None, generation: int | None = None
+    ) -> None:
+        """Noise a clean (normalised) primer sequence (B, T, A) to the start levels (paper Eq. 4). With
+        ``generation`` (read before the primer was computed), a buffer cleared since stays cleared."""
         t = self.plan(primer.device, primer.shape[0])[0].timesteps
         sample = self.schedule.add_noise(primer, gaussian_like(primer, generator), t)
         with self._lock:
+            if generation is not None and generation != self._generation:
+                raise StreamResetError(STREAM_RESET)
             self.sample, self.last_chunk, self._past_noise = sample, None, None
 
     def window(self, committed: int) -> Tensor:
@@ -190,14 +211,22 @@ class StreamingBuffer:
         return torch.cat([past, self.last_chunk[:, tb - d :], chunks], dim=1)
 
     def stream_step(
-        self, step: StreamStep, generator: torch.Generator | None = None, committed: int = 0
+        self,
+        step: StreamStep,
+        generator: torch.Generator | None = None,
+        committed: int = 0,
+        generation: int | None = None,
     ) -> Tensor:
         """One streaming call: draw its noise (every draw from ``generator``), run ``step`` on the
         ``window`` of ``committed`` slots, keep the shifted buffer, return the clean chunk (B, Tb, A).
         ``step`` is `stream_step` with its schedule, geometry and denoiser bound (`bind`), or the
         model's conditioned, cached or compiled form of it. If ``step`` raises, the buffer is left as
-        it was; if ``clear`` ran meanwhile, it stays cleared."""
+        it was. If ``clear`` ran meanwhile, or since ``generation`` was read, it stays cleared and the
+        call raises `StreamResetError`: its chunk belongs to the episode that ended (LeRobot's RTC
+        engine would queue it in the next one)."""
         with self._lock:
+            if generation is not None and generation != self._generation:
+                raise StreamResetError(STREAM_RESET)
             if self.sample is None:
                 raise RuntimeError("The streaming buffer is empty: call prime() after reset().")
             generation, window = self._generation, self.window(committed)
@@ -205,7 +234,8 @@ class StreamingBuffer:
         noise = StreamNoise(step_noise(plan, window, generator), gaussian_like(window, generator))
         chunk, sample = step(window, plan, noise, committed)
         with self._lock:
-            if generation == self._generation:
-                self.sample, self.last_chunk = sample, chunk
-                self._past_noise = noise.shift[:, : self.geometry.n_past]
+            if generation != self._generation:  # its chunk would run in the episode that followed
+                raise StreamResetError(STREAM_RESET)
+            self.sample, self.last_chunk = sample, chunk
+            self._past_noise = noise.shift[:, : self.geometry.n_past]
         return chunk

@@ -49,7 +49,7 @@ from .observations import (
     repeated_frame,
     stack_cameras,
 )
-from .rtc import committed_under_rtc, engine_result, rest_of_last_chunk
+from .rtc import committed_under_rtc, engine_problem, engine_result, rest_of_last_chunk
 from .schedule import PerSlotSchedule, StepCoefficients, gaussian_like
 from .unet import make_variable_noise, plan_embedding_cache
 from .warm_start import WarmStartReport, merged_stats, warm_start
@@ -433,6 +433,9 @@ class SDPPolicy(PreTrainedPolicy):
         tick and the rest of the last chunk committed when the policy was trained with `max_delay`;
         the result timed from the frame's tick (a slot for it, the rest, the new chunk)."""
         reject_unknown_kwargs("predict_action_chunk", kwargs)
+        problem = engine_problem(self.config)
+        if problem:
+            raise ValueError(problem)
         history = repeated_frame(self.config, batch)
         rest = rest_of_last_chunk(self.config, left_over) if left_over is not None else None
         # the rest and the action before it end the buffer's last chunk unless the stream restarted
@@ -465,10 +468,12 @@ class SDPPolicy(PreTrainedPolicy):
             refuse_non_finite(history, finite_flags(history))
             actions = model.conditional_sample(batch_size, model.global_conditioning(history), generator)
             return actions[:, self.geometry.executed]
+        generation = self._buffer.generation  # a reset() from another thread from here on wins
         fresh = self._buffer.sample is None
         if fresh:
             kind = "denoise" if sampling == "fresh" else None  # afresh: from this observation only
-            self._buffer.prime(model.primer(history, self.state_to_action, generator, kind), generator)
+            primer = model.primer(history, self.state_to_action, generator, kind)
+            self._buffer.prime(primer, generator, generation)
         model_step = model.stream_step_for(history[OBS_STATE].device, compiled)
 
         def step(
@@ -480,7 +485,7 @@ class SDPPolicy(PreTrainedPolicy):
             return chunk, next_sample
 
         try:
-            return self._buffer.stream_step(step, generator, committed)
+            return self._buffer.stream_step(step, generator, committed, generation)
         except ValueError:
             if fresh:  # never keep a stream primed from a refused observation
                 self._buffer.clear()

@@ -31,14 +31,17 @@ What SDP needs on top of LeRobot's server (docs/deployment.md, "Async inference"
   server keeps the plan it sent (`Plan`, normalised actions by timestep); the buffer's next chunk
   begins where the plan ends. A reply is the plan's unexecuted rest followed by one streamed chunk
   (N/h denoiser calls), so the buffer advances one chunk per chunk the robot can execute, whatever
-  the number of actions executed between two calls. A timestep lower than the plan's start is a new
-  episode: the stream restarts.
+  the number of actions executed between two calls. A timestep lower than the newest one received
+  is a new episode (the client started over without Ready): the history, the plan and the stream
+  restart, and an observation of the old episode still queued is dropped.
 - **On time.** A chunk streams only once at most `delay_ticks` unexecuted actions are left (the
   inference delay in control ticks: `--delay_ticks`, or measured from the server's own inference
-  times), so that it arrives as the rest runs out; before that the reply is the rest alone, without
-  a denoiser call. A policy trained with `max_delay` denoises the chunk with that rest as committed
-  slots (`SDPPolicy.predict_action_chunk(committed=...)`): the observation of tick t conditions a
-  chunk that starts at t + 1 + rest, as in training. A policy trained without it denoises the chunk
+  times: from the observation's arrival to its reply, pickled, the first chunk of a stream left out,
+  as it primes and may warm up; never a whole chunk), so that it arrives as the rest runs out;
+  before that the reply is the rest alone, without a denoiser call. A policy trained with
+  `max_delay` denoises the chunk with that rest as committed slots
+  (`SDPPolicy.predict_action_chunk(committed=...)`): the observation of tick t conditions a chunk
+  that starts at t + 1 + rest, as in training. A policy trained without it denoises the chunk
   as if it started right after the observation, at most `delay_ticks` ticks early.
 """
 
@@ -79,6 +82,7 @@ if "sdp" not in SUPPORTED_POLICIES:  # the list LeRobot's server checks, extende
 logger = logging.getLogger(__name__)
 FRAMES_KEPT = 16  # received observations kept per client for the history (control timesteps)
 LATENCIES_KEPT = 8  # the delay estimate is the slowest of the last few chunks
+SWEEPS_PER_TIMEOUT = 4  # idle sessions are dropped at most a quarter of the timeout late
 # gRPC metadata that names a client across reconnects (ours; the one proposed to LeRobot's client)
 CLIENT_ID_KEYS = ("x-sdp-client-id", "x-lerobot-client-id")
 NEEDS_POLICY = ("SendObservations", "GetActions")
@@ -126,11 +130,12 @@ class SDPPolicyServerConfig(PolicyServerConfig):
 
 @dataclass
 class Plan:
-    """The normalised actions (1, L, A) sent to a client for control timesteps start .. start + L - 1.
-    The SDP buffer's next chunk begins at `end`."""
+    """The normalised actions (1, L, A) sent to a client for control timesteps start .. start + L - 1,
+    in the session's `episode`. The SDP buffer's next chunk begins at `end`."""
 
     start: int
     actions: Tensor
+    episode: int = 0
 
     @property
     def end(self) -> int:
@@ -214,6 +219,20 @@ def number_problem(name: str, value: Any) -> str | None:
     return None
 
 
+@dataclass
+class EpisodeObservation(TimedObservation):
+    """A client's observation as the session stores it: with the session's episode count when it
+    arrived (an observation of an episode the client has left is never run) and the arrival time
+    (the delay estimate counts from it)."""
+
+    episode: int = 0
+    received: float = 0.0
+
+
+class StaleObservationError(Exception):
+    """An observation of an episode the client has left: dropped, the client gets no reply for it."""
+
+
 class ClientError(Exception):
     """A call the server refuses; the client receives `code` and the message."""
 
@@ -279,15 +298,19 @@ class ClientPolicyServer(PolicyServer):
     error with the reason, instead of a silent empty reply, and an observation is checked before
     anything keeps it."""
 
-    def __init__(self, config: SDPPolicyServerConfig):
+    def __init__(self, config: SDPPolicyServerConfig, clock=time.monotonic):
         super().__init__(config)
+        self.clock = clock
+        self.episode = 0  # counts the client's episodes: Ready, or its timestep going back
+        self.retry = False  # the last prediction failed: the next observation goes through
+        self.streamed_from: float | None = None  # arrival of the observation whose reply streams
         self.frames: dict[int, TimedObservation] = {}
         self.frames_lock = threading.Lock()  # SendObservations writes frames while GetActions reads them
         self.predict_lock = threading.Lock()  # one chunk at a time: the SDP buffer is one stream
         self.plan: Plan | None = None
         self.error: str | None = None
         self.current: TimedObservation | None = None
-        self.last_seen = time.monotonic()
+        self.last_seen = clock()
         self.in_flight = 0  # calls running now: a session is idle only with none
         self.latencies: deque[float] = deque(maxlen=LATENCIES_KEPT)  # seconds per streamed chunk
 
@@ -296,7 +319,8 @@ class ClientPolicyServer(PolicyServer):
         super()._reset_server()
         with self.frames_lock:
             self.frames = {}
-        self.plan, self.error, self.last_processed_obs = None, None, None
+            self.episode += 1
+        self.plan, self.error, self.last_processed_obs, self.retry = None, None, None, False
         self.fps_tracker.reset()
         if self.policy is not None:
             self.policy.reset()
@@ -315,6 +339,9 @@ class ClientPolicyServer(PolicyServer):
         if self.error is not None:
             message, self.error = self.error, None
             raise ClientError(message)
+        if self.streamed_from is not None:  # the whole reply: queue, processors, chunk, pickling
+            self.latencies.append(self.clock() - self.streamed_from)
+            self.streamed_from = None
         return reply
 
     def SendObservations(self, request_iterator, context):  # noqa: N802 (gRPC's name)
@@ -346,6 +373,11 @@ class ClientPolicyServer(PolicyServer):
             if restart:
                 logger.info("Client timestep went back to %d: a new episode, the history restarts.", t)
                 self.frames, self.last_processed_obs = {}, None
+                self.episode += 1
+            # after a failed prediction the client waits with an empty queue and sends the same state
+            # again: it must go, or LeRobot's "too similar" filter drops it and the robot stalls for good
+            must_go, self.retry = obs.must_go or self.retry, False
+            obs = EpisodeObservation(obs.timestamp, t, obs.observation, must_go, self.episode, self.clock())
             self.frames[t] = obs
             for old in sorted(self.frames)[:-FRAMES_KEPT]:
                 del self.frames[old]
@@ -354,13 +386,19 @@ class ClientPolicyServer(PolicyServer):
             self._predicted_timesteps = {s for s in kept if s > t - FRAMES_KEPT}
         return super()._enqueue_observation(obs)
 
-    def _predict_action_chunk(self, observation_t: TimedObservation):
+    def _predict_action_chunk(self, observation_t: EpisodeObservation):
         with self.predict_lock:
-            self.current = observation_t
+            self.current, self.streamed_from = observation_t, None
             try:
+                if observation_t.episode != self.episode:
+                    raise StaleObservationError(
+                        f"Observation #{observation_t.get_timestep()} belongs to an episode the client has "
+                        "left: dropped."
+                    )
                 return super()._predict_action_chunk(observation_t)
-            except (ValueError, KeyError, RuntimeError) as e:  # e.g. SDP refusing NaN; LeRobot drops it
-                self.error = str(e)
+            except (ValueError, KeyError, RuntimeError, StaleObservationError) as e:  # LeRobot drops it
+                if not isinstance(e, StaleObservationError):  # e.g. SDP refusing NaN, out of memory
+                    self.error, self.retry = str(e), True
                 with self._predicted_timesteps_lock:  # a corrected observation at this timestep may run
                     self._predicted_timesteps.discard(observation_t.get_timestep())
                 raise
@@ -368,35 +406,36 @@ class ClientPolicyServer(PolicyServer):
     def _get_action_chunk(self, observation: dict[str, Tensor]) -> Tensor:
         if self.policy_type != "sdp":
             return super()._get_action_chunk(observation)
-        t = self.current.get_timestep()
-        return self.sdp_reply(self._history(observation, t), t)[:, : self.actions_per_chunk]
+        t, episode = self.current.get_timestep(), self.current.episode
+        return self.sdp_reply(self._history(observation, t), t, episode)[:, : self.actions_per_chunk]
 
-    def sdp_reply(self, history: dict[str, Tensor], t: int) -> Tensor:
+    def sdp_reply(self, history: dict[str, Tensor], t: int, episode: int = 0) -> Tensor:
         """The actions for timesteps t, t + 1, ...: the plan's unexecuted rest, then one streamed chunk
-        once at most `delay_ticks()` of the rest are left to run."""
-        plan = self.plan
-        if plan is not None and t < plan.start:
-            logger.info(
-                "Client timestep went back from %d to %d: a new episode, the stream restarts.", plan.start, t
-            )
+        once at most `delay_ticks()` of the rest are left to run. `episode`: the session's count of the
+        client's episodes when the observation arrived."""
+        plan, past_the_plan = self.plan, False
+        if plan is not None and (episode != plan.episode or t < plan.start):
+            logger.info("Client started a new episode at timestep %d: the stream restarts.", t)
             self.policy.reset()
             plan = None
-        elif plan is not None and t > plan.end:  # executed past what was sent: not LeRobot's client
+        elif plan is not None and t >= plan.end:  # executed past what was sent: not LeRobot's client
             logger.warning(
-                "Client executed up to %d, past the plan's end %d: the stream restarts.", t, plan.end
+                "Client executed up to %d, past the plan's end %d: the stream restarts.", t, plan.end - 1
             )
             self.policy.drop_queued_actions()
-            plan = None
+            plan, past_the_plan = None, True
         rest = plan.actions[:, t - plan.start :] if plan is not None else None
         left = 0 if rest is None else max(0, rest.shape[1] - 1)  # the action at t has run
         if left > self.delay_ticks():  # the chunk would run late: stream at a later observation
             return rest
         committed = left if self.policy.config.max_delay else 0
-        start = time.perf_counter()
         chunk = self.policy.predict_action_chunk(history, committed=committed)
-        self.latencies.append(time.perf_counter() - start)
+        if plan is not None:  # a stream's first chunk primes it (and may warm up): not its delay
+            self.streamed_from = getattr(self.current, "received", None)
+        if past_the_plan:  # the action at t has run: a slot for t, which the client drops, then the chunk
+            rest = chunk[:, :1]
         actions = chunk if rest is None else torch.cat([rest, chunk], dim=1)
-        self.plan = Plan(t, actions)
+        self.plan = Plan(t, actions, episode)
         return actions
 
     def delay_ticks(self) -> int:
@@ -407,8 +446,9 @@ class ClientPolicyServer(PolicyServer):
         config, policy_config = self.config, self.policy.config
         if config.delay_ticks is not None:
             ticks = config.delay_ticks
-        elif self.latencies:
-            ticks = math.ceil(max(max(self.latencies), config.inference_latency) * config.fps)
+        elif self.latencies:  # never more than a chunk less one: a chunk streams at most once per chunk
+            slowest = max(max(self.latencies), config.inference_latency)
+            ticks = min(math.ceil(slowest * config.fps), policy_config.n_action_steps - 1)
         else:
             ticks = policy_config.n_action_steps - 1
         return min(ticks, policy_config.max_delay) if policy_config.max_delay else ticks
@@ -434,10 +474,39 @@ class ClientPolicyServer(PolicyServer):
 class SDPPolicyServer(services_pb2_grpc.AsyncInferenceServicer):
     """The gRPC service: routes each call to its client's `ClientPolicyServer`, within the limits."""
 
-    def __init__(self, config: SDPPolicyServerConfig):
-        self.config = config
+    def __init__(self, config: SDPPolicyServerConfig, clock=time.monotonic):
+        self.config, self.clock = config, clock
         self.sessions: dict[str, ClientPolicyServer] = {}
         self._lock = threading.Lock()
+        self._closed = threading.Event()
+
+    def sweep(self) -> None:
+        """Drop the sessions idle for longer than `--session_timeout_s`."""
+        with self._lock:
+            self._drop_idle(self.clock())
+
+    def start_sweeping(self) -> threading.Thread:
+        """Sweep in a thread, a few times per timeout, until `close()`: a session whose client
+        vanished is dropped, and its policy freed, even when no other call ever comes."""
+        period = self.config.session_timeout_s / SWEEPS_PER_TIMEOUT
+
+        def sweep_until_closed():
+            while not self._closed.wait(period):
+                try:
+                    self.sweep()
+                except Exception:  # a session that fails to stop must not end the sweeping
+                    logger.exception("Sweeping idle sessions failed; sweeping goes on.")
+
+        thread = threading.Thread(target=sweep_until_closed, name="sdp-session-sweeper", daemon=True)
+        thread.start()
+        return thread
+
+    def close(self) -> None:
+        """Stop sweeping and drop every session."""
+        self._closed.set()
+        with self._lock:
+            for key in list(self.sessions):
+                self.sessions.pop(key).stop()
 
     @staticmethod
     def client_key(context) -> str:
@@ -448,7 +517,7 @@ class SDPPolicyServer(services_pb2_grpc.AsyncInferenceServicer):
         return context.peer()
 
     def session(self, context, method: str) -> ClientPolicyServer:
-        key, now = self.client_key(context), time.monotonic()
+        key, now = self.client_key(context), self.clock()
         with self._lock:
             self._drop_idle(now)
             session = self.sessions.get(key)
@@ -466,7 +535,7 @@ class SDPPolicyServer(services_pb2_grpc.AsyncInferenceServicer):
                         f"This server already serves {len(self.sessions)} clients (--max_clients="
                         f"{self.config.max_clients}); retry later or start it with a higher --max_clients."
                     )
-                session = self.sessions[key] = ClientPolicyServer(self.config)
+                session = self.sessions[key] = ClientPolicyServer(self.config, self.clock)
             elif session.in_flight >= self.config.max_calls_per_client:
                 raise LimitError(
                     f"This client already has {session.in_flight} calls running (--max_calls_per_client="
@@ -499,7 +568,7 @@ class SDPPolicyServer(services_pb2_grpc.AsyncInferenceServicer):
         finally:
             with self._lock:
                 session.in_flight -= 1
-                session.last_seen = time.monotonic()
+                session.last_seen = self.clock()
 
     def Ready(self, request, context):  # noqa: N802 (gRPC's names, from here on)
         return self.call("Ready", request, context)
@@ -531,12 +600,13 @@ def start_server(config: SDPPolicyServerConfig) -> tuple[grpc.Server, SDPPolicyS
     services_pb2_grpc.add_AsyncInferenceServicer_to_server(service, server)
     port = server.add_insecure_port(f"{config.host}:{config.port}")
     server.start()
+    service.start_sweeping()
     return server, service, port
 
 
 @draccus.wrap()
 def serve(config: SDPPolicyServerConfig) -> None:
-    server, _, port = start_server(config)
+    server, service, port = start_server(config)
     logger.info("SDP policy server on %s:%d (policies: %s)", config.host, port, ", ".join(SUPPORTED_POLICIES))
     if config.host not in LOOPBACK:
         logger.warning(
@@ -545,7 +615,10 @@ def serve(config: SDPPolicyServerConfig) -> None:
             config.host,
             port,
         )
-    server.wait_for_termination()
+    try:
+        server.wait_for_termination()
+    finally:
+        service.close()
 
 
 def main() -> None:

@@ -12,13 +12,27 @@ So SDP answers one slot for tick t (already run, always dropped), the rest (tick
 then the buffer's next chunk (from t + K + 1): every streamed action runs once, none is skipped. A
 policy trained with `max_delay` denoises that chunk with the action of tick t and the rest as K + 1
 committed slots, as in training, where the observation of tick t precedes its own action. SDP
-streams one chunk per call, so the engine must call once per chunk (docs/deployment.md).
+streams one chunk per call, so the engine must call once per chunk (docs/deployment.md), and it must
+replace its queue with each result (`--inference.rtc.enabled=true`, the default; `engine_problem`).
 """
 
 import torch
 from torch import Tensor
 
 from .configuration_sdp import SDPConfig
+
+
+def engine_problem(config: SDPConfig) -> str | None:
+    """Why the engine that set ``config.rtc_config`` (`lerobot-rollout` does) cannot run SDP, or None."""
+    rtc_config = getattr(config, "rtc_config", None)
+    if rtc_config is not None and not rtc_config.enabled:
+        return (
+            "SDP under the RTC engine needs --inference.rtc.enabled=true (the default): with it false, "
+            "LeRobot's ActionQueue appends each result after the actions still queued instead of replacing "
+            "them, and SDP's result repeats those actions (the leftover), so the robot would run them twice. "
+            "Drop --inference.rtc.enabled=false, or use --inference.type=sync."
+        )
+    return None
 
 
 def rest_of_last_chunk(config: SDPConfig, left_over: Tensor) -> Tensor:

@@ -146,3 +146,26 @@ def test_constant_primer_starts_from_the_newest_observation(state_mode, action_m
         f"primer {mean.tolist()}, newest {as_actions[-1].tolist()}"
     )
     assert ((as_actions[:-1] - as_actions[-1]).abs().amax(-1) > 100 * tol).all()  # older ones are far
+
+
+def test_a_reset_while_a_call_primes_its_stream_keeps_nothing(monkeypatch):
+    """A reset() from another thread between a call's "is the buffer empty?" and its prime (a client's
+    Ready, an episode's end) wins: the call fails with the reason and the buffer stays empty, never
+    primed from the old episode's observation."""
+    from lerobot_sdp.buffer import StreamResetError
+
+    policy = SDPPolicy(tiny_config()).eval()
+    model = policy._sampling_model()
+    primer = model.primer
+
+    def primer_then_reset(*args, **kwargs):
+        value = primer(*args, **kwargs)
+        policy.reset()  # what another thread's reset() does while the primer is computed
+        return value
+
+    monkeypatch.setattr(model, "primer", primer_then_reset)
+    with pytest.raises(StreamResetError, match="reset"):
+        policy.predict_action_chunk(history(policy.config, batch_size=1))
+    assert policy._buffer.sample is None
+    monkeypatch.setattr(model, "primer", primer)
+    assert policy.predict_action_chunk(history(policy.config, batch_size=1)).shape[1] == 4

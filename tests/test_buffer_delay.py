@@ -13,7 +13,7 @@ import torch
 from diffusers import DDIMScheduler, DDPMScheduler
 from sdp_test_utils import stream_step_with
 
-from lerobot_sdp.buffer import StreamingBuffer
+from lerobot_sdp.buffer import StreamingBuffer, StreamResetError
 from lerobot_sdp.geometry import ChunkGeometry
 from lerobot_sdp.schedule import PerSlotSchedule
 
@@ -142,5 +142,6 @@ def test_a_clear_during_a_call_is_not_undone_when_the_call_ends(d):
         buffer.clear()  # e.g. policy.reset() from the control thread while inference runs
         return oracle(sample, timesteps)
 
-    stream_step_with(buffer, clearing, committed=d)
+    with pytest.raises(StreamResetError, match="belongs to the episode that ended"):
+        stream_step_with(buffer, clearing, committed=d)  # never handed on: it would run in the next one
     assert buffer.sample is None and buffer.last_chunk is None

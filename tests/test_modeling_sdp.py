@@ -7,6 +7,7 @@ import torch
 from sdp_test_utils import PUSHT_STATS, history, observation, tiny_config
 
 from lerobot_sdp import SDPPolicy
+from lerobot_sdp.buffer import StreamResetError
 
 
 def training_batch(cfg, batch_size=4):
@@ -404,7 +405,8 @@ def test_reset_while_a_chunk_is_computed_leaves_a_fresh_stream():
     hist = history(policy.config)
     policy.predict_action_chunk(hist)
     hook = policy.ema_model.unet.register_forward_hook(lambda *_: policy.reset())  # the control thread
-    policy.predict_action_chunk(hist)
+    with pytest.raises(StreamResetError, match="belongs to the episode that ended"):
+        policy.predict_action_chunk(hist)  # its chunk is dropped, never handed to the next episode
     hook.remove()
     assert policy._buffer.sample is None
     torch.testing.assert_close(

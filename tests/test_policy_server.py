@@ -3,6 +3,7 @@ and history that keep SDP's buffer in step with what the robot executed; faults 
 
 import json
 import logging
+import math
 import os
 import pickle
 import signal
@@ -109,14 +110,15 @@ def test_reply_is_the_unexecuted_plan_then_one_streamed_chunk(server_mod):
     assert torch.allclose(fourth[:, 3:], reference.predict_action_chunk(obs))
     assert (session.plan.start, session.plan.end) == (5, 2 + 2 + 2 * TB)
 
-    # At the plan's end, where the buffer's next chunk starts: nothing to resend, the stream goes on.
+    # At the plan's last action: nothing to resend but the one the client drops, the stream goes on.
     torch.manual_seed(5)
-    fifth = session.sdp_reply(obs, session.plan.end)
+    fifth = session.sdp_reply(obs, session.plan.end - 1)
     torch.manual_seed(5)
-    assert torch.allclose(fifth, reference.predict_action_chunk(obs)) and len(calls) == 4
+    assert torch.equal(fifth[:, :1], fourth[:, -1:])
+    assert torch.allclose(fifth[:, 1:], reference.predict_action_chunk(obs)) and len(calls) == 4
 
 
-@pytest.mark.parametrize("jump", ["back", "past_the_plan"])
+@pytest.mark.parametrize("jump", ["back", "at_the_plans_end", "past_the_plan"])
 def test_stream_restarts_when_the_timestep_leaves_the_plan(server_mod, jump):
     """A timestep before the plan (a new episode) or past its end restarts the stream from the primer."""
     served, reference = twin_policies()
@@ -124,12 +126,15 @@ def test_stream_restarts_when_the_timestep_leaves_the_plan(server_mod, jump):
     obs = history(served.config, batch_size=1)
     session.sdp_reply(obs, 10)
     session.sdp_reply(obs, 12)
-    t = 0 if jump == "back" else session.plan.end + 3
+    t = {"back": 0, "at_the_plans_end": session.plan.end, "past_the_plan": session.plan.end + 3}[jump]
     torch.manual_seed(4)
     restarted = session.sdp_reply(obs, t)
     torch.manual_seed(4)
-    assert torch.allclose(restarted, reference.predict_action_chunk(obs))  # the reference's first chunk
-    assert (session.plan.start, session.plan.end) == (t, t + TB)
+    first = reference.predict_action_chunk(obs)  # the reference's first chunk
+    # back: a new episode, nothing ran yet; past the plan: the action at t ran, the client drops slot t
+    slot = 0 if jump == "back" else 1
+    assert torch.allclose(restarted[:, slot:], first) and restarted.shape[1] == slot + TB
+    assert (session.plan.start, session.plan.end) == (t, t + slot + TB)
 
 
 class ClientClock:
@@ -267,6 +272,7 @@ def server(server_mod):
     grpc_server, service, port = server_mod.start_server(config)
     yield service, f"127.0.0.1:{port}"
     grpc_server.stop(grace=None)
+    service.close()
 
 
 def robot_client(tmp_path, address: str, policy_dir, name: str):
@@ -542,3 +548,152 @@ def test_the_server_listens_on_localhost_unless_told_otherwise(server_mod):
         server_mod.SDPPolicyServerConfig(max_calls_per_client=0)
     with pytest.raises(ValueError, match="receive_timeout_s must be positive"):
         server_mod.SDPPolicyServerConfig(receive_timeout_s=0)
+
+
+class FakeClock:
+    """A clock a test moves by hand (seconds), for the session's timing."""
+
+    def __init__(self):
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def served_session(server_mod, tmp_path, clock=None, **config):
+    """A session with the tiny policy and pusht_sim's features, served through LeRobot's own path
+    (`_enqueue_observation`, then `_predict_action_chunk` on the queued observation)."""
+    served, reference = twin_policies()
+    session = session_with(server_mod, served, tmp_path, **config)
+    if clock is not None:
+        session.clock = clock
+    return session, reference
+
+
+def serve(session, t: int, agent_x: float = 100.0, must_go: bool = True):
+    """The client's observation stamped t goes in; the actions of the one the server runs come out
+    (None when LeRobot's filters skip it)."""
+    from lerobot.async_inference.helpers import TimedObservation
+
+    obs = TimedObservation(timestamp=time.time(), timestep=t, observation=raw_observation(agent_x))
+    obs.must_go = must_go
+    if not session._enqueue_observation(obs):
+        return None
+    return session._predict_action_chunk(session.observation_queue.get_nowait())
+
+
+class Peer:
+    def peer(self):
+        return "ipv4:127.0.0.1:1"
+
+
+def reply_of(session, t: int, agent_x: float = 100.0) -> list:
+    """LeRobot's whole GetActions for the client's observation stamped t, unpickled."""
+    from lerobot.async_inference.helpers import TimedObservation
+
+    session._enqueue_observation(TimedObservation(time.time(), t, raw_observation(agent_x), must_go=True))
+    return pickle.loads(session.GetActions(None, Peer()).data)
+
+
+def test_a_restart_without_ready_at_the_plans_own_start_restarts_the_stream(server_mod, tmp_path):
+    """The client started over at timestep 0 while the plan also starts at 0: the newer timesteps it
+    had sent before show the restart, and the reply is a new stream, not the old episode's plan."""
+    session, _ = served_session(server_mod, tmp_path, delay_ticks=0)
+    torch.manual_seed(1)
+    old = serve(session, 0)
+    serve(session, 1, agent_x=120.0, must_go=False)  # the plan still has more than 0 left: no stream
+    torch.manual_seed(2)
+    new = serve(session, 0, agent_x=100.0)  # the client restarted
+    assert [a.get_timestep() for a in new] == list(range(TB))
+    assert not torch.equal(*(torch.stack([a.get_action() for a in reply]) for reply in (new, old)))
+    assert session.plan.start == 0 and session.plan.episode == session.episode == 1
+
+
+def test_an_observation_of_a_left_episode_is_never_run(server_mod, tmp_path):
+    """One queued before the client started over (LeRobot's queue holds one) is dropped when its turn
+    comes: its reply would bring the old episode's plan back."""
+    session, _ = served_session(server_mod, tmp_path, delay_ticks=0)
+    from lerobot.async_inference.helpers import TimedObservation
+
+    serve(session, 0)
+    session._enqueue_observation(TimedObservation(time.time(), 3, raw_observation(130.0), must_go=True))
+    stale = session.observation_queue.get_nowait()
+    session._enqueue_observation(TimedObservation(time.time(), 0, raw_observation(100.0), must_go=True))
+    with pytest.raises(server_mod.StaleObservationError):
+        session._predict_action_chunk(stale)
+    assert 3 not in session._predicted_timesteps and session.error is None
+
+
+def test_after_a_failed_prediction_the_same_state_is_retried(server_mod, tmp_path):
+    """A transient failure (here the model raising, as on an out-of-memory): the client, whose queue is
+    empty, sends the same state again, not must-go (RobotClient cleared its must-go flag). It is run,
+    not dropped as "too similar" to the observation that failed."""
+    session, _ = served_session(server_mod, tmp_path)
+    predict, calls = session.policy.predict_action_chunk, []
+
+    def fails_once(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 1:
+            raise RuntimeError("CUDA out of memory")
+        return predict(*args, **kwargs)
+
+    session.policy.predict_action_chunk = fails_once
+    with pytest.raises(RuntimeError, match="out of memory"):
+        serve(session, 0)
+    actions = serve(session, 0, must_go=False)  # the same state, at the same timestep
+    assert actions is not None and len(actions) == TB and len(calls) == 2
+
+
+def test_the_delay_leaves_out_a_streams_first_chunk_counts_the_whole_reply_and_is_capped(
+    server_mod, tmp_path
+):
+    """The delay in ticks is the slowest recent reply from the observation's arrival (pre- and
+    post-processing included) to its end, at --fps; a stream's first chunk (priming, warm-up) does not
+    count, and the delay never reaches a whole chunk."""
+    clock = FakeClock()
+    session, _ = served_session(server_mod, tmp_path, clock=clock, fps=30, inference_latency=0.0)
+    predict, preprocess = session.policy.predict_action_chunk, session.preprocessor
+    chunk_s = [3.0]  # the first chunk: 3 s, 90 ticks at 30 fps
+
+    def timed_predict(*args, **kwargs):
+        clock.now += chunk_s[0]
+        return predict(*args, **kwargs)
+
+    def slow_preprocess(obs):
+        clock.now += 0.05  # 1.5 ticks of preprocessing, which the estimate must see
+        return preprocess(obs)
+
+    session.policy.predict_action_chunk, session.preprocessor = timed_predict, slow_preprocess
+    t = 0
+    for _ in range(3):
+        assert reply_of(session, t)[0].get_timestep() == t
+        chunk_s[0] = 0.01
+        t = session.plan.end - 1  # the client ran all but the last sent action
+    # 0.05 s of preprocessing (the history's other frame was never sent), 0.01 s of denoising: 1.8 ticks
+    assert session.delay_ticks() == math.ceil((0.05 + 0.01) * 30) == 2
+    session.latencies.append(3.0)  # a later slow reply: capped at a chunk less one
+    assert session.delay_ticks() == TB - 1
+
+
+def test_a_vanished_clients_session_is_dropped_without_any_other_call(server_mod):
+    """The last client vanished: no call will ever come to sweep its session, so the server's own
+    sweeper drops it (and frees its policy) within the timeout and a quarter."""
+    import weakref
+
+    config = server_mod.SDPPolicyServerConfig(host="127.0.0.1", port=free_port(), session_timeout_s=0.2)
+    grpc_server, service, _ = server_mod.start_server(config)
+    session = service.sessions["ipv4:127.0.0.1:1"] = server_mod.ClientPolicyServer(service.config)
+    session.policy = torch.nn.Linear(1, 1)
+    session.policy.reset = lambda: None
+    policy = weakref.ref(session.policy)
+    del session
+    try:
+        wait_for(lambda: not service.sessions, timeout=0.2 * 1.25 + 0.2)
+        assert policy() is None  # nothing else held it
+    finally:
+        grpc_server.stop(grace=None)
+        service.close()
+    sweeper = [t for t in threading.enumerate() if t.name == "sdp-session-sweeper"]
+    for thread in sweeper:
+        thread.join(timeout=1)
+    assert not any(t.is_alive() for t in sweeper)

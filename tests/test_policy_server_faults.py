@@ -100,6 +100,7 @@ def served(server_mod, tmp_path):
     finally:
         running.stop()
         grpc_server.stop(grace=None)
+        service.close()
 
 
 def keeps_acting(robot, fault):

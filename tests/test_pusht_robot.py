@@ -240,3 +240,23 @@ def test_lerobot_rollout_rtc_engine_drives_pusht_sim_with_sdp(tmp_path):
     assert "RTCInferenceEngine" in log and "RTC inference error" not in log, log[-5000:]
     assert 2 * duration <= stats["actions_sent"] <= 10 * duration + 2, stats
     assert stats["ignored_commands"] == 0
+
+
+def test_a_reconnect_starts_a_new_episode(tmp_path, monkeypatch):
+    """After disconnect() / connect() the robot runs a new episode: its actions step the env again
+    (not "after the end"), on a clock that starts with its first action; finished episodes are kept."""
+    robot, now = clocked(tmp_path, monkeypatch, episode_length=3)
+    for tick in range(4):
+        now[0] = tick * 0.1
+        act(robot)
+    assert robot.stats()["actions_after_end"] == 1 and len(robot.episodes) == 1
+    robot.disconnect()
+    now[0] = 50.0  # long after the first connection's clock started: no tick may count as missed
+    robot.connect()
+    try:
+        act(robot)
+        stats = robot.stats()
+        assert stats["actions_after_end"] == 0 and stats["missed_ticks"] == 0 and stats["actions_sent"] == 1
+        assert stats["current_episode"]["steps"] == 1 and len(stats["episodes"]) == 1
+    finally:
+        robot.disconnect()

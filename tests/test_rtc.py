@@ -175,3 +175,17 @@ def test_on_the_engines_clock_every_streamed_action_runs_once_k_plus_1_ticks_aft
         )
     for (_, _, chunk), reference_chunk in zip(calls, expected, strict=True):
         torch.testing.assert_close(chunk, reference_chunk[0])
+
+
+def test_the_rtc_engine_with_rtc_disabled_is_refused_with_the_flag():
+    """`--inference.rtc.enabled=false` makes LeRobot's ActionQueue append results instead of replacing
+    the queue: the leftover SDP returns would run twice. `lerobot-rollout` sets the engine's RTC
+    config on the policy's config; SDP refuses the call and names the flag."""
+    cfg = tiny_config()
+    policy = SDPPolicy(cfg).eval()
+    policy.config.rtc_config = RTCConfig(enabled=False)
+    with pytest.raises(ValueError, match=r"--inference\.rtc\.enabled=true"):
+        policy.predict_action_chunk(frame(cfg, 1), inference_delay=0, prev_chunk_left_over=None)
+    policy.config.rtc_config = RTCConfig(enabled=True)
+    result = policy.predict_action_chunk(frame(cfg, 1), inference_delay=0, prev_chunk_left_over=None)
+    assert result.shape[1] == 1 + cfg.n_action_steps

@@ -16,6 +16,7 @@ from . import (
     data_parallel,
     delay,
     deployment,
+    deployment_schedules,
     latency,
     probe,
     quality,
@@ -36,6 +37,7 @@ SUBCOMMANDS: dict[str, ModuleType] = {
     "server-load": server_load,
     "animation": animation,
     "probe": probe,
+    "schedules": deployment_schedules,
 }
 
 

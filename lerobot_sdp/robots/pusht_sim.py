@@ -14,10 +14,11 @@ current tick; a tick that passes without one repeats the last target and counts 
 (a policy that stalls costs the robot what it costs on hardware), and an action early for its
 tick becomes the target of the next. Observations are read after the clock is brought up to now.
 
-One episode per connection: it ends on success (coverage > 95 %) or after `episode_length` ticks,
-and the env then holds still (later actions are counted, not applied). So every episode starts
-with a freshly started policy (its buffer and history reset), never from a pusher that jumped to a
-new start under a policy still streaming the last episode. Run one `lerobot-rollout` (or one robot
+One episode per connection (a reconnect starts a new one, from the configured seed): it ends on
+success (coverage > 95 %) or after `episode_length` ticks, and the env then holds still (later
+actions are counted, not applied). So every episode starts with a freshly started policy (its
+buffer and history reset), never from a pusher that jumped to a new start under a policy still
+streaming the last episode. Run one `lerobot-rollout` (or one robot
 client) per episode: `--duration` at least `episode_length / fps` seconds.
 
 For comparing inference engines the robot also records how far the commanded target jumped between
@@ -53,11 +54,15 @@ class PushTSim(Robot):
         self.config = config
         self._env = None
         self._obs: dict[str, float] = {}
+        self.episodes: list[dict[str, Any]] = []  # every finished episode, over connections
+        self._start_episode()
+
+    def _start_episode(self) -> None:
+        """A connection's state from scratch: its episode, its clock and its counters."""
         self.actions_sent = 0
         self.ignored_commands = 0
         self.actions_after_end = 0
         self.early_actions = 0  # actions that came before their tick: they only replaced the target
-        self.episodes: list[dict[str, Any]] = []
         self.rewards: list[float] = []  # the episode's rewards, one per tick
         self.last_reward: float | None = None
         self._success = False
@@ -98,6 +103,7 @@ class PushTSim(Robot):
         from gym_pusht.envs import PushTEnv  # here, not at import: LeRobot imports the config on every start
 
         self._env = PushTEnv(obs_type=self.config.obs_type)
+        self._start_episode()  # a reconnect is a new episode, not the end of the last one
         obs, _ = self._env.reset(seed=self.config.seed)
         self._set_obs(obs)
         logger.info("pusht_sim connected (gym-pusht, %s, %d Hz)", self.config.obs_type, self.config.fps)
