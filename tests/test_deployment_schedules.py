@@ -140,3 +140,33 @@ def test_a_server_bug_is_found_and_shrunk(monkeypatch):
     assert fails(shrunk) and len(shrunk) < len(steps) and any(s.fail for s in shrunk)
     monkeypatch.setattr(policy_server.ClientPolicyServer, "_enqueue_observation", original)
     assert not fails(steps)
+
+
+def test_the_action_log_refuses_another_episodes_actions_repeats_and_skips():
+    """The checker itself: actions in order pass; a repeat, a skip or an action of a stream started
+    before the current episode fails; the lenient log (LeRobot's own queue) counts repeats and skips."""
+
+    def act(log, stream, pos, tick=0):
+        log.run(torch.tensor([float(stream), float(pos)]), tick)
+
+    log = ds.ActionLog()
+    log.stream_started[7] = 1.0
+    log.new_episode(0.5)
+    act(log, 7, 0)
+    act(log, 7, 1)
+    with pytest.raises(ds.InvariantError, match="ran its action 1, expected 2"):
+        act(log, 7, 1)
+    with pytest.raises(ds.InvariantError, match="ran its action 3, expected 2"):
+        act(log, 7, 3)
+    log.new_episode(2.0)  # stream 7 began before this episode
+    with pytest.raises(ds.InvariantError, match="not of this episode"):
+        act(log, 7, 2)
+    log.stream_started[8] = 2.0
+    act(log, 8, 0)
+    assert log.executed == 3
+
+    lenient = ds.ActionLog(lenient=True)
+    lenient.stream_started[1] = 0.0
+    for pos in (0, 1, 1, 4, 5):
+        act(lenient, 1, pos)
+    assert (lenient.repeated, lenient.skipped, lenient.executed) == (1, 2, 5)
