@@ -116,3 +116,16 @@ def test_the_loss_comparison_bins_and_scores_by_hand():
     assert abs(b["bins"][0][0] - 3.0) < 1e-12
     assert abs(b["max_abs_z"] - 2**-0.5) < 1e-9
     assert train_profile.z_score(0.5, 0.0) == float("inf") and train_profile.z_score(0.0, 0.0) == 0.0
+
+
+def test_the_limit_rows_divide_the_counted_flops_by_the_probed_rate(tmp_path):
+    make_tiny_pusht_dataset(tmp_path / "data", n_episodes=2, length=40)
+    out = tmp_path / "out"
+    cli.main(["train-profile", "--config_path", str(tiny_config(tmp_path / "c.json")), "--policies", "sdp",
+              "--num_threads", "1", "--limit", "--dataset_root", str(tmp_path / "data"),
+              "--repo_id", "local/tiny_pusht", "--steps", "2", "--warmup", "1",
+              "--output_dir", str(out)])  # fmt: skip
+    (row,) = json.loads((out / "train_profile.json").read_text())["rows"]
+    assert row["gflop_per_step"] > 0 and row["peak_gflops"] == max(row["gemm_gflops"], row["conv1d_gflops"])
+    assert abs(row["limit_ms"] - row["gflop_per_step"] / row["peak_gflops"] * 1e3) < 1e-9
+    assert abs(row["model_over_limit"] - row["model_ms"] / row["limit_ms"]) < 1e-9

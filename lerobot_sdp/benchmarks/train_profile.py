@@ -219,6 +219,15 @@ def build(
     )
 
 
+def contender_loss(c: Contender, batch: dict, forward: Callable) -> torch.Tensor:
+    """The loss of `forward` on a preprocessed batch, under autocast at the contender's precision."""
+    dtype = AUTOCAST[c.variant.precision]
+    device = next(c.policy.parameters()).device.type
+    with torch.autocast(device, dtype=dtype, enabled=dtype is not None):
+        loss, _ = forward(batch)
+    return loss
+
+
 def take_step(c: Contender) -> None:
     """One training step, each phase timed as `lerobot-train`'s `update_policy` runs it."""
     torch.set_num_threads(c.variant.threads)
@@ -227,10 +236,7 @@ def take_step(c: Contender) -> None:
     t = c.timer("data", t)
     batch = c.preprocessor(batch)
     t = c.timer("preprocess", t)
-    dtype = AUTOCAST[c.variant.precision]
-    device = next(c.policy.parameters()).device.type
-    with torch.autocast(device, dtype=dtype, enabled=dtype is not None):
-        loss, _ = c.forward(batch)
+    loss = contender_loss(c, batch, c.forward)
     c.losses.append(loss.item())
     t = c.timer("forward", t)
     loss.backward()
@@ -278,21 +284,16 @@ def conv_shape(c: Contender) -> hardware_limit.ConvShape:
     """The conv1d of the U-Net's middle level: its channels at its length (the horizon halved per level)."""
     dims = c.cfg.policy.down_dims
     level = len(dims) // 2
-    return hardware_limit.ConvShape(c.cfg.batch_size, dims[level], c.cfg.policy.horizon // 2**level, 5)
+    length = c.cfg.policy.horizon // 2**level
+    return hardware_limit.ConvShape(c.cfg.batch_size, dims[level], length, c.cfg.policy.kernel_size)
 
 
 def measure_limit(c: Contender, rates: dict) -> None:
     """The contender's FLOPs per step and the time they take at this machine's rate (`rates` caches the
     probes by threads, precision and shape)."""
-
-    def forward_backward():
-        batch = c.preprocessor(next(c.batches))
-        dtype = AUTOCAST[c.variant.precision]
-        with torch.autocast("cpu", dtype=dtype, enabled=dtype is not None):
-            loss, _ = c.policy.forward(batch)
-        loss.backward()
-
-    flops = hardware_limit.step_flops(forward_backward)
+    batch = c.preprocessor(next(c.batches))
+    # eager: torch's FLOP counter sees the operators of an uncompiled forward
+    flops = hardware_limit.step_flops(lambda: contender_loss(c, batch, c.policy.forward).backward())
     c.optimizer.zero_grad()
     shape = conv_shape(c)
     key = (c.variant.threads, c.variant.precision, shape)
