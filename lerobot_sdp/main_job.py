@@ -177,7 +177,7 @@ def train_evaluate_measure(
         cost = stream_cost(model_dir)
     policy = json.loads((model_dir / "config.json").read_text())
     timing = timings.summary()
-    train_s = timing["stage_time_s"].get("train")
+    train_s, steps_done = timing["stage_time_s"].get("train"), trained_steps(train_dir)
     return {
         "pc_success": metrics["pc_success"],
         "avg_max_reward": metrics["avg_max_reward"],
@@ -190,8 +190,8 @@ def train_evaluate_measure(
         "model_dir": str(model_dir),
         "videos": str(eval_dir / "videos"),
         "video_files": [str(v) for v in videos],
-        "train_steps": trained_steps(train_dir),
-        "train_steps_per_s": trained_steps(train_dir) / train_s if train_s else None,
+        "train_steps": steps_done,
+        "train_steps_per_s": steps_done / train_s if train_s else None,
         "train_num_workers": num_workers(train_args),
         "train_torch_threads": training_threads(train_args),
         **timing,
