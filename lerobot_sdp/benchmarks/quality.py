@@ -215,19 +215,20 @@ PROBE_DEMOS = 20
 
 def screen_runs(budget: Budget, device: str) -> list[Run]:
     """LeRobot's DP, SDP h = 2 with the default recipe, and SDP h = 2 with each candidate recipe, all
-    on the budget's schedule: chunk-wise levels over the whole training table, constant levels for the
-    first quarter then the mixture, a ramp from constant to the mixture over the first half, 50 %
-    constant, Min-SNR-5 weights, EMA (SDP only: LeRobot 0.6.1's DP has none)."""
+    on the budget's schedule: constant levels for the first quarter then the mixture, 50 % constant,
+    Min-SNR-5 weights, chunk-wise levels over the whole training table, EMA (SDP only: LeRobot 0.6.1's
+    DP has none), a ramp from constant to the mixture over the first half."""
     steps = budget.steps
     base = sdp_args(budget, device, 2)
     without_ema = [a for a in base if not a.startswith("--policy.use_ema=")]
+    # in the order they run: the fine-tune's evidence (constant levels first) before the rest
     candidates = {
-        "screen_training_table": [*base, "--policy.chunkwise_grid=training_table"],
         "screen_curriculum_switch": [*base, f"--policy.noise_curriculum.constant_steps={max(1, steps // 4)}"],
-        "screen_curriculum_ramp": [*base, f"--policy.noise_curriculum.ramp_steps={max(1, steps // 2)}"],
         "screen_const50": sdp_args(budget, device, 2, {"constant": 0.5, "chunkwise": 0.5}),
         "screen_min_snr5": [*base, "--policy.min_snr_gamma=5.0"],
+        "screen_training_table": [*base, "--policy.chunkwise_grid=training_table"],
         "screen_ema": [*without_ema, "--policy.use_ema=true"],
+        "screen_curriculum_ramp": [*base, f"--policy.noise_curriculum.ramp_steps={max(1, steps // 2)}"],
     }
     runs = [Run("dp", policy_args(budget, "diffusion", device), steps), Run("sdp_h2", base, steps)]
     return runs + [Run(name, flags, steps) for name, flags in candidates.items()]
