@@ -69,6 +69,9 @@ CORE_TESTS = [
     "tests/test_data_parallel.py::test_every_rank_draws_its_own_training_noise_reproducibly",
     "tests/test_memory_dataset.py",
     "tests/test_lerobot_cli.py::test_training_threads_follow_the_dataloader_workers",
+    "tests/test_lerobot_cli.py::test_run_logged_gives_the_child_its_threads_unless_the_user_chose",
+    "tests/test_lerobot_cli.py::test_a_training_beside_others_gets_its_share_of_the_cores",
+    "tests/test_benchmarks_quality.py::test_runs_trained_at_once_share_the_cores",
     "tests/test_configuration_sdp.py",
     "tests/test_benchmarks_hardware_limit.py",
     "tests/test_benchmarks_train_profile.py",
@@ -809,7 +812,7 @@ MUTANTS = [
       "the losses divided by windows, not by values"),
     # --- training speed: thread count, fused Adam, one-pass EMA, the train-profile and its limit -------
     M("H01", "lerobot_cli.py",
-      "return 1 if num_workers(train_args) > 0 else len(os.sched_getaffinity(0))",
+      "return max(1, len(os.sched_getaffinity(0)) // concurrent)",
       "return 1",
       "a run without DataLoader workers still trains on one thread"),
     M("H02", "lerobot_cli.py",
@@ -840,6 +843,18 @@ MUTANTS = [
       "bins.append((values.mean().item(), (values.std() / math.sqrt(size)).item()))",
       "bins.append((values.mean().item(), values.std().item()))",
       "a bin's spread reported as its standard deviation, not its standard error"),
+    M("H09", "lerobot_cli.py",
+      "return max(1, len(os.sched_getaffinity(0)) // concurrent)",
+      "return len(os.sched_getaffinity(0))",
+      "trainings that run at once each start a thread per core"),
+    M("H10", "lerobot_cli.py",
+      "count = exported[0] if exported else str(threads)",
+      "count = str(threads)",
+      "an exported OMP_NUM_THREADS leaves MKL's pool at the default count"),
+    M("H11", "benchmarks/quality.py",
+      "echo, concurrent=plan.jobs)",
+      "echo)",
+      "quality --jobs N trains each run as if it were alone"),
 ]  # fmt: skip
 
 

@@ -33,9 +33,12 @@ LEROBOT_NUM_WORKERS = 4  # TrainPipelineConfig's default
 
 
 def subprocess_env(threads: int = 1) -> dict[str, str]:
-    """The environment of a LeRobot child: `threads` torch threads unless the user exported a count."""
-    counts = {name: str(threads) for name in THREAD_DEFAULTS}
-    return counts | dict(os.environ)
+    """The environment of a LeRobot child: `threads` torch threads unless the user exported a count.
+    One exported count sets the other too: OpenMP's pool and MKL's are both torch's, and a pool left at
+    `threads` beside a user's `OMP_NUM_THREADS=1` oversubscribes the cores the user divided."""
+    exported = [os.environ[name] for name in THREAD_DEFAULTS if name in os.environ]
+    count = exported[0] if exported else str(threads)
+    return {name: count for name in THREAD_DEFAULTS} | dict(os.environ)
 
 
 def num_workers(train_args: list[str]) -> int:
@@ -49,10 +52,13 @@ def num_workers(train_args: list[str]) -> int:
     return LEROBOT_NUM_WORKERS
 
 
-def training_threads(train_args: list[str]) -> int:
-    """One torch thread beside DataLoader workers (they hold the other cores); one per core without
-    them: a dataset served from memory (`memory_dataset`) leaves every core to the update."""
-    return 1 if num_workers(train_args) > 0 else len(os.sched_getaffinity(0))
+def training_threads(train_args: list[str], concurrent: int = 1) -> int:
+    """One torch thread beside DataLoader workers (they hold the other cores); without them, the cores
+    shared among the `concurrent` trainings that run at once: a dataset served from memory
+    (`memory_dataset`) leaves every core to the updates."""
+    if num_workers(train_args) > 0:
+        return 1
+    return max(1, len(os.sched_getaffinity(0)) // concurrent)
 
 
 def let_sigint_reach_children() -> None:
@@ -122,11 +128,18 @@ def train_command(processes: int = 1) -> list[str]:
 
 
 def train(
-    train_dir: Path, args: list[str], steps: int, log: Path, echo: bool = True, processes: int = 1
+    train_dir: Path,
+    args: list[str],
+    steps: int,
+    log: Path,
+    echo: bool = True,
+    processes: int = 1,
+    concurrent: int = 1,
 ) -> Path:
     """`lerobot-train ARGS --steps=STEPS --output_dir=TRAIN_DIR` on `processes` processes, resumed or
-    skipped when a checkpoint exists. Returns the final pretrained_model directory. `echo=False`:
-    the output goes to `log` only."""
+    skipped when a checkpoint exists, its torch threads shared with `concurrent - 1` other trainings
+    that run at once. Returns the final pretrained_model directory. `echo=False`: the output goes to
+    `log` only."""
     model_dir = last_checkpoint(train_dir) / "pretrained_model"
     done = trained_steps(train_dir)
     if done >= steps:
@@ -139,7 +152,7 @@ def train(
         raise CLIError(f"{train_dir} exists but holds no checkpoint: move it away or delete it, then rerun.")
     else:
         cmd = [*train_command(processes), *args, f"--steps={steps}", f"--output_dir={train_dir}"]
-    run_logged(cmd, log, echo, threads=training_threads(cmd) if processes == 1 else 1)
+    run_logged(cmd, log, echo, threads=training_threads(cmd, concurrent) if processes == 1 else 1)
     return model_dir
 
 

@@ -440,3 +440,25 @@ def test_tiny_screen_trains_the_candidates_probes_them_and_resumes(tmp_path, cap
     capsys.readouterr()
     cli.main([*argv, "--status"])
     assert capsys.readouterr().out.count("evaluated") == 2
+
+
+def test_runs_trained_at_once_share_the_cores(tmp_path, monkeypatch):
+    """`--jobs 2` tells each training it runs beside another, so that the two do not each start a
+    thread per core (four OpenMP pools spinning on two cores)."""
+    from lerobot_sdp.benchmarks import quality
+
+    class StopError(Exception):
+        pass
+
+    seen = []
+
+    def fake_train(*args, concurrent=1, **kwargs):
+        seen.append(concurrent)
+        raise StopError
+
+    make_tiny_pusht_dataset(tmp_path / "data")
+    monkeypatch.setattr(quality, "train", fake_train)
+    for jobs in ("1", "2"):
+        with pytest.raises(StopError):
+            cli.main([*tiny_quality_args(tmp_path), "--runs", "comparison", "--only", "dp", "--jobs", jobs])
+    assert seen == [1, 2]

@@ -107,7 +107,9 @@ def test_a_command_left_by_an_error_is_stopped_not_waited_for(tmp_path):
     raise AssertionError(f"the child {pid} still runs")
 
 
-def test_training_threads_follow_the_dataloader_workers(tmp_path):
+def test_training_threads_follow_the_dataloader_workers(tmp_path, monkeypatch):
+    import os
+
     from lerobot_sdp.lerobot_cli import num_workers, training_threads
 
     config = tmp_path / "c.json"
@@ -116,9 +118,13 @@ def test_training_threads_follow_the_dataloader_workers(tmp_path):
     assert num_workers(with_config) == 0
     assert num_workers([*with_config, "--num_workers=2"]) == 2  # the flag wins over the file
     assert num_workers(["--policy.type=sdp"]) == 4  # LeRobot's default
-    cores = len(__import__("os").sched_getaffinity(0))
+    cores = len(os.sched_getaffinity(0))
     assert training_threads(with_config) == cores
     assert training_threads([*with_config, "--num_workers=1"]) == 1
+    # trainings that run at once share the cores, never below one thread each
+    monkeypatch.setattr(os, "sched_getaffinity", lambda _: set(range(4)))
+    assert training_threads(with_config, concurrent=2) == 2
+    assert training_threads(with_config, concurrent=8) == 1
 
 
 def test_run_logged_gives_the_child_its_threads_unless_the_user_chose(tmp_path, monkeypatch):
@@ -131,4 +137,22 @@ def test_run_logged_gives_the_child_its_threads_unless_the_user_chose(tmp_path, 
     assert "threads 2 2" in (tmp_path / "a.log").read_text()
     monkeypatch.setenv("OMP_NUM_THREADS", "3")
     run_logged([sys.executable, "-c", child], tmp_path / "b.log", echo=False, threads=2)
-    assert "threads 3 2" in (tmp_path / "b.log").read_text()
+    assert "threads 3 3" in (tmp_path / "b.log").read_text()  # one exported count sets both pools
+    monkeypatch.setenv("MKL_NUM_THREADS", "1")
+    run_logged([sys.executable, "-c", child], tmp_path / "c.log", echo=False, threads=2)
+    assert "threads 3 1" in (tmp_path / "c.log").read_text()  # both exported: each its own
+
+
+def test_a_training_beside_others_gets_its_share_of_the_cores(tmp_path, monkeypatch):
+    import os
+
+    from lerobot_sdp import lerobot_cli
+
+    given = []
+    monkeypatch.setattr(lerobot_cli, "run_logged", lambda cmd, log, echo, threads=1: given.append(threads))
+    monkeypatch.setattr(os, "sched_getaffinity", lambda _: set(range(4)))
+    for concurrent in (1, 2):
+        lerobot_cli.train(
+            tmp_path / f"t{concurrent}", ["--num_workers=0"], 1, tmp_path / "log", concurrent=concurrent
+        )
+    assert given == [4, 2]

@@ -268,8 +268,8 @@ def run_dir(output_dir: Path, run: Run, seed_dir: str = "") -> Path:
 @dataclass(frozen=True)
 class Plan:
     """What the runs of one invocation share: where they live, the data and training flags, the
-    episodes they are evaluated on (`seed_dir`: the evaluations' subfolder, see `run_dir`), and the
-    curve's checkpoint spacing with how many evaluations run at once."""
+    episodes they are evaluated on (`seed_dir`: the evaluations' subfolder, see `run_dir`), the
+    curve's checkpoint spacing with how many evaluations run at once, and how many runs train at once."""
 
     output_dir: Path
     data_args: list[str]
@@ -278,6 +278,7 @@ class Plan:
     seed_dir: str = ""
     curve_every: int | None = None
     eval_jobs: int = 1
+    jobs: int = 1  # runs at once: each training gets its share of the cores
 
 
 def execute(run: Run, plan: Plan, echo: bool = True) -> dict:
@@ -289,7 +290,7 @@ def execute(run: Run, plan: Plan, echo: bool = True) -> dict:
     timing = json.loads(timing_file.read_text()) if timing_file.exists() else {"train_wall_s": 0.0}
     t0 = time.monotonic()
     train_args = [*plan.data_args, *plan.common, *run.policy_args]
-    model_dir = train(root / "train", train_args, run.steps, root / "train.log", echo)
+    model_dir = train(root / "train", train_args, run.steps, root / "train.log", echo, concurrent=plan.jobs)
     if not run.trains_as:
         timing["train_wall_s"] += time.monotonic() - t0
         timing_file.write_text(json.dumps(timing))
@@ -651,7 +652,9 @@ def run(args: argparse.Namespace) -> dict:
     report["task"] = task_label(args)
     report |= {"sweep": previous["sweep"]} if "sweep" in previous else {}
 
-    plan = Plan(output_dir, data_args, common, eval_args, seed_dir, args.curve_every, args.eval_jobs)
+    plan = Plan(
+        output_dir, data_args, common, eval_args, seed_dir, args.curve_every, args.eval_jobs, args.jobs
+    )
     episodes = f"{budget.n_episodes} episodes from seed {eval_seed}"
     for row in run_in_parallel(selected, lambda r: execute(r, plan, args.jobs == 1), args.jobs):
         rows[row["run"]] = row
