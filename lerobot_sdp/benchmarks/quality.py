@@ -509,8 +509,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--jobs",
         type=int,
         default=1,
-        help="train and evaluate this many runs at once, their output in their log files only (a GPU "
-        "with many CPU cores: each run's DataLoader workers and torch threads count against the cores)",
+        help="train and evaluate this many runs at once, their output in their log files only; each "
+        "training without DataLoader workers gets cores / JOBS torch threads (--jobs 2 on a 2-core "
+        "CPU: one thread each)",
     )
     parser.add_argument(
         "--eval_jobs",
