@@ -78,6 +78,7 @@ CORE_TESTS = [
     "tests/test_training_recipe.py",
     "tests/test_benchmarks_probe.py",
     "tests/test_benchmarks_quality.py::test_every_screen_candidate_sets_its_option_and_nothing_else",
+    "tests/test_benchmarks_quality.py::test_step_conditioning_and_sdp_flags_reach_the_sdp_runs_only",
     "tests/test_pusht_robot.py::test_a_reconnect_starts_a_new_episode",
     "tests/test_deployment_schedules.py",
 ]
@@ -778,6 +779,14 @@ MUTANTS = [
       'f"--policy.noise_curriculum.constant_steps={max(1, steps // 2)}"',
       "the ramp screen switches instead"),
     # --- probe: true against shuffled observations ---------------------------------------------------
+    M("T20", "benchmarks/quality.py",
+      "kept = [a for a in run.policy_args if not any(a.startswith(k) for k in keys)]",
+      "kept = list(run.policy_args)",
+      "a carried recipe flag lands beside the run's own value of the key"),
+    M("T21", "benchmarks/quality.py",
+      "if not flags or \"--policy.type=sdp\" not in run.policy_args:",
+      "if not flags:",
+      "DP's runs get SDP's recipe flags"),
     M("O01", "benchmarks/probe.py",
       'conds["shuffled"] = conds["true"].roll(1, dims=0)',
       'conds["shuffled"] = conds["true"]',

@@ -30,6 +30,7 @@ from lerobot_sdp.benchmarks.quality import (
     resolve_budget,
     run_in_parallel,
     warmstart_runs,
+    with_sdp_flags,
     with_step_conditioning,
 )
 
@@ -153,7 +154,7 @@ def test_only_selects_runs_with_the_models_they_evaluate(tmp_path, capsys):
     assert [line.split()[0] for line in printed.splitlines() if line.strip()] == ["sdp_h2"]
 
 
-def test_step_conditioning_reaches_the_sdp_runs_only(tmp_path):
+def test_step_conditioning_and_sdp_flags_reach_the_sdp_runs_only(tmp_path):
     runs = comparison_runs(BUDGETS["cpu"], "cpu") + warmstart_runs(BUDGETS["cpu"], "cpu", tmp_path)
     film = {r.name: r for r in with_step_conditioning(runs, "film_per_slot")}
     flag = "--policy.step_conditioning=film_per_slot"
@@ -163,9 +164,22 @@ def test_step_conditioning_reaches_the_sdp_runs_only(tmp_path):
     flat = {r.name: r for r in with_step_conditioning(runs, "flatten")}
     assert flag in flat["warm_film"].policy_args  # a run that chose its encoder keeps it
     assert "--policy.step_conditioning=flatten" not in flat["warm_film"].policy_args
-    assert with_step_conditioning(runs, None) == runs
+    assert with_step_conditioning(runs, None) == with_sdp_flags(runs, []) == runs
+    # a recipe carried to the comparison: every SDP run, not DP, in place of the run's own value
+    recipe = ["--policy.min_snr_gamma=5.0", "--policy.noise_schemes.constant=0.5"]
+    carried = {r.name: r for r in with_sdp_flags(runs, recipe)}
+    assert recipe[0] in carried["sdp_h4"].policy_args and recipe[0] not in carried["dp"].policy_args
+    h4 = carried["sdp_h4"].policy_args
+    assert h4.count(recipe[1]) == 1 and not any(
+        a.startswith("--policy.noise_schemes.constant=0.2") for a in h4
+    )
+    assert "--policy.noise_schemes.chunkwise=0.8" in h4  # the keys not named stay
     with pytest.raises(SystemExit):
         cli.main(["quality", "--step_conditioning", "film", "--status"])
+    with pytest.raises(SystemExit, match=r"--policy\.KEY=VALUE"):
+        cli.main(["quality", "--sdp_flag=min_snr_gamma=5", "--status", "--output_dir", str(tmp_path)])
+    with pytest.raises(SystemExit, match="pass --output_dir"):
+        cli.main(["quality", "--sdp_flag=--policy.min_snr_gamma=5", "--status"])
     parser = argparse.ArgumentParser()
     add_arguments(parser)
     film_can = ["--env", "robomimic", "--task", "PickPlaceCan", "--step_conditioning", "film_per_slot"]

@@ -250,6 +250,32 @@ def with_step_conditioning(runs: list[Run], choice: str | None) -> list[Run]:
     return [conditioned(r) for r in runs]
 
 
+def with_sdp_flags(runs: list[Run], flags: list[str]) -> list[Run]:
+    """The SDP runs trained with each `--policy.KEY=VALUE` of `flags` in place of their own value of
+    KEY (a recipe carried to every SDP run); DP's runs are unchanged."""
+    keys = {f.split("=", 1)[0] + "=" for f in flags}
+
+    def flagged(run: Run) -> Run:
+        if not flags or "--policy.type=sdp" not in run.policy_args:
+            return run
+        kept = [a for a in run.policy_args if not any(a.startswith(k) for k in keys)]
+        return replace(run, policy_args=[*kept, *flags])
+
+    return [flagged(r) for r in runs]
+
+
+def sdp_flags(args: argparse.Namespace) -> list[str]:
+    """Every `--sdp_flag`, checked: each must read `--policy.KEY=VALUE`."""
+    flags = []
+    for flag in args.sdp_flag or []:
+        if not flag.startswith("--policy.") or "=" not in flag:
+            raise SystemExit(
+                f"--sdp_flag takes a lerobot-train policy flag, --policy.KEY=VALUE; got {flag!r}."
+            )
+        flags.append(flag)
+    return flags
+
+
 def dp_model(output_dir: Path) -> Path:
     """The comparison's final DP model (LeRobot's `last` checkpoint), where the warm starts begin."""
     return output_dir / "runs" / "dp" / "train" / "checkpoints" / "last" / "pretrained_model"
@@ -536,6 +562,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "the default output directory gets its name as a suffix",
     )
     parser.add_argument(
+        "--sdp_flag",
+        action="append",
+        default=None,
+        metavar="--policy.KEY=VALUE",
+        help="train every SDP run with this policy flag, written --sdp_flag=--policy.KEY=VALUE (repeatable; "
+        "it replaces the run's own value of KEY): a recipe carried from the screen to the comparison; "
+        "needs --output_dir, so that the default folder keeps the default recipe",
+    )
+    parser.add_argument(
         "--curve_every",
         type=int,
         default=None,
@@ -613,6 +648,10 @@ def run(args: argparse.Namespace) -> dict:
     for flag in ("jobs", "eval_jobs"):
         if getattr(args, flag) < 1:
             raise SystemExit(f"--{flag} must be at least 1, got {getattr(args, flag)}.")
+    if args.sdp_flag and args.output_dir is None:
+        raise SystemExit(
+            "--sdp_flag changes how SDP trains: pass --output_dir, a folder of its own for those runs."
+        )
     output_dir = args.output_dir or default_output_dir(args, budget_name)
     runs = {
         "comparison": comparison_runs,
@@ -628,7 +667,8 @@ def run(args: argparse.Namespace) -> dict:
     runs["screen"] = screen_runs  # shares dp and sdp_h2 with the comparison: not part of "all"
     kinds = [k for k in runs if k != "screen"] if args.runs == "all" else [args.runs]
     every_run = [r for kind in kinds for r in runs[kind](budget, args.device)]
-    selected = only(with_step_conditioning(every_run, args.step_conditioning), args.only)
+    conditioned = with_step_conditioning(every_run, args.step_conditioning)
+    selected = only(with_sdp_flags(conditioned, sdp_flags(args)), args.only)
     eval_seed, eval_args, seed_dir = evaluation(args, budget)
     print("\n".join(status(selected, output_dir, seed_dir)), flush=True)
     if args.status:
