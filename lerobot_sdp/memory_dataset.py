@@ -38,7 +38,7 @@ class MemoryTable:
 
     def __init__(self, reader, columns: dict[str, torch.Tensor]):
         self.columns = columns
-        self.tasks = reader._meta.tasks
+        self.task_names = reader._meta.tasks.index.tolist()  # by task_index; pandas' iloc costs per sample
         episodes = reader._meta.episodes
         ids = torch.as_tensor(episodes["episode_index"], dtype=torch.long)
         self.ep_start = torch.zeros(int(ids.max()) + 1, dtype=torch.long)
@@ -65,7 +65,7 @@ class MemoryTable:
             rows = wanted.clamp(start, end - 1)
             item[key] = self.columns[key][rows if self.row_of is None else self.row_of[rows]]
         item.update(padding)
-        item["task"] = self.tasks.iloc[int(item["task_index"])].name
+        item["task"] = self.task_names[int(item["task_index"])]
         return item
 
 
