@@ -62,8 +62,7 @@ class Variant:
 
     def label(self, axes: list[str]) -> str:
         """The settings that differ between contenders, e.g. "bf16 2t"."""
-        parts = {"precision": self.precision, "threads": f"{self.threads}t", "data": self.data}
-        parts["compile"] = self.compile
+        parts = asdict(self) | {"threads": f"{self.threads}t"}
         return " ".join(parts[a] for a in axes)
 
 
