@@ -47,7 +47,8 @@ class SDPConfig(PreTrainedConfig):
             current state repeated, needs state and action in one space), "denoise" (a full N-step
             denoise on the first call).
         noise_schemes: training mixture weights of the corruption schemes constant / linear /
-            independent / chunkwise (default 0.2 constant + 0.8 chunkwise, the paper's best).
+            independent / chunkwise / independent_chunks (default 0.2 constant + 0.8 chunkwise, the
+            paper's best).
         chunkwise_grid: where the chunk-wise scheme draws its levels: "sampler" (the default: the
             inference sampler's N-step grid, s level staircases) or "training_table" (all
             num_train_timesteps, T/h staircases, as the authors' code; needs T divisible by h).

@@ -6,6 +6,9 @@ level per slot) and Fig. "Trajectory Noise Corruptions"; docs/algorithm.md, sect
 - constant: one t ~ U{0..T-1} for the whole sequence (plain Diffusion Policy);
 - linear: t rises linearly along the slots from 0 to T-1 (deterministic, as in the authors' code);
 - independent: i.i.d. t ~ U{0..T-1} per slot (Diffusion Forcing style);
+- independent_chunks: i.i.d. t ~ U{0..T-1} per chunk, one level for all slots of a chunk: the later
+  chunk is as often cleaner than its neighbour as noisier, so it cannot always be continued from
+  the cleaner one and has to read the observation (not in the paper);
 - chunkwise: chunk i in the band of steps remaining [i*s+1, (i+1)*s], one offset shared by all
   chunks of the sample, so training sees exactly the staircases that streaming inference visits
   (`chunkwise_grid="sampler"`); or, as the authors' ``get_diff_steps_training`` draws it, over the
@@ -39,13 +42,14 @@ from .schedule import CLEAN, PerSlotSchedule
 
 @dataclass
 class NoiseSchemeWeights:
-    """Mixture weights of the four schemes (`--policy.noise_schemes.chunkwise=0.8` ...).
+    """Mixture weights of the schemes (`--policy.noise_schemes.chunkwise=0.8` ...).
     Defaults: the paper's best mixture, 80% chunk-wise + 20% constant."""
 
     constant: float = 0.2
     linear: float = 0.0
     independent: float = 0.0
     chunkwise: float = 0.8
+    independent_chunks: float = 0.0
 
     def __post_init__(self):
         weights = self.as_dict()
@@ -95,6 +99,19 @@ def independent_levels(
     )
 
 
+def independent_chunk_levels(
+    batch_size: int,
+    geometry: ChunkGeometry,
+    schedule: PerSlotSchedule,
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    device = device_of(schedule)
+    per_chunk = torch.randint(
+        schedule.num_train_timesteps, (batch_size, geometry.n_chunks), device=device, generator=generator
+    )
+    return per_chunk[:, geometry.slot_chunk_on(device)]
+
+
 def chunkwise_levels(
     batch_size: int,
     geometry: ChunkGeometry,
@@ -132,6 +149,7 @@ SCHEMES = {
     "linear": linear_levels,
     "independent": independent_levels,
     "chunkwise": chunkwise_levels,
+    "independent_chunks": independent_chunk_levels,
 }
 # where the chunk-wise scheme takes its levels from: the sampler's N-step grid or all T timesteps
 CHUNKWISE_GRIDS = {"sampler": chunkwise_levels, "training_table": chunkwise_table_levels}

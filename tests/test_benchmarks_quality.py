@@ -399,7 +399,7 @@ def test_every_screen_candidate_sets_its_option_and_nothing_else():
 
     from lerobot_sdp import SDPConfig
     from lerobot_sdp.benchmarks.quality import screen_runs
-    from lerobot_sdp.noise_schemes import NoiseCurriculum
+    from lerobot_sdp.noise_schemes import NoiseCurriculum, NoiseSchemeWeights
 
     budget = resolve_budget(argparse.Namespace(budget="robomimic_cpu", env="robomimic", steps=8000))[1]
     runs = {r.name: r for r in screen_runs(budget, "cpu")}
@@ -417,6 +417,9 @@ def test_every_screen_candidate_sets_its_option_and_nothing_else():
         "screen_curriculum_ramp": {"noise_curriculum": NoiseCurriculum(ramp_steps=4000)},
         "screen_min_snr5": {"min_snr_gamma": 5.0},
         "screen_ema": {"use_ema": True},
+        "screen_independent_chunks": {
+            "noise_schemes": NoiseSchemeWeights(constant=0.2, chunkwise=0.6, independent_chunks=0.2)
+        },
     }
     for name, fields in changed.items():
         cfg = parsed(name)
@@ -430,6 +433,7 @@ def test_every_screen_candidate_sets_its_option_and_nothing_else():
         "linear": 0.0,
         "independent": 0.0,
         "chunkwise": 0.5,
+        "independent_chunks": 0.0,
     }
 
 

@@ -47,6 +47,7 @@ def test_noise_scheme_weights_parse_from_the_command_line():
         "linear": 0.33,
         "independent": 0.67,
         "chunkwise": 0.0,
+        "independent_chunks": 0.0,
     }
 
 

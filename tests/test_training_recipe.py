@@ -236,6 +236,7 @@ def test_the_new_options_parse_from_the_command_line_and_refuse_bad_values():
         "linear": 0.0,
         "independent": 0.0,
         "chunkwise": 0.5,
+        "independent_chunks": 0.0,
     }
     assert cfg.chunkwise_grid == "training_table" and cfg.min_snr_gamma == 5.0
     assert cfg.noise_curriculum == NoiseCurriculum(constant_steps=2000, ramp_steps=1000)

@@ -152,6 +152,7 @@ def sdp_args(budget: Budget, device: str, n_chunks: int, schemes: dict | None = 
         "linear": 0.0,
         "independent": 0.0,
         "chunkwise": 0.0,
+        "independent_chunks": 0.0,
         **(schemes or SCHEMES["cw80_const20"]),
     }
     return (
@@ -216,8 +217,10 @@ PROBE_DEMOS = 20
 def screen_runs(budget: Budget, device: str) -> list[Run]:
     """LeRobot's DP, SDP h = 2 with the default recipe, and SDP h = 2 with each candidate recipe, all
     on the budget's schedule: constant levels for the first quarter then the mixture, 50 % constant,
-    Min-SNR-5 weights, chunk-wise levels over the whole training table, EMA (SDP only: LeRobot 0.6.1's
-    DP has none), a ramp from constant to the mixture over the first half."""
+    Min-SNR-5 weights, chunk-wise levels over the whole training table, a fifth of the samples at one
+    independent level per chunk (the probe's candidate: the later chunk cannot always lean on a cleaner
+    neighbour), EMA (SDP only: LeRobot 0.6.1's DP has none), a ramp from constant to the mixture over
+    the first half."""
     steps = budget.steps
     base = sdp_args(budget, device, 2)
     without_ema = [a for a in base if not a.startswith("--policy.use_ema=")]
@@ -227,6 +230,9 @@ def screen_runs(budget: Budget, device: str) -> list[Run]:
         "screen_const50": sdp_args(budget, device, 2, {"constant": 0.5, "chunkwise": 0.5}),
         "screen_min_snr5": [*base, "--policy.min_snr_gamma=5.0"],
         "screen_training_table": [*base, "--policy.chunkwise_grid=training_table"],
+        "screen_independent_chunks": sdp_args(
+            budget, device, 2, {"constant": 0.2, "chunkwise": 0.6, "independent_chunks": 0.2}
+        ),
         "screen_ema": [*without_ema, "--policy.use_ema=true"],
         "screen_curriculum_ramp": [*base, f"--policy.noise_curriculum.ramp_steps={max(1, steps // 2)}"],
     }
