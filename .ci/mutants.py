@@ -836,6 +836,10 @@ MUTANTS = [
       "0, cell[p], torch.full_like(cell[p], size, dtype=count.dtype)",
       "the losses divided by windows, not by values"),
     # --- training speed: thread count, fused Adam, one-pass EMA, the train-profile and its limit -------
+    M("O09", "benchmarks/probe.py",
+      'return policy._sampling_model() if policy.config.type == "sdp" else policy.diffusion',
+      'return policy.model if policy.config.type == "sdp" else policy.diffusion',
+      "an SDP policy with EMA is probed on its raw weights, not the averaged ones it samples with"),
     M("H01", "lerobot_cli.py",
       "return max(1, len(os.sched_getaffinity(0)) // concurrent)",
       "return 1",

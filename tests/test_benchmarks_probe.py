@@ -8,7 +8,14 @@ import torch
 from sdp_test_utils import tiny_config, tiny_dp_config
 
 from lerobot_sdp.benchmarks import cli
-from lerobot_sdp.benchmarks.probe import Probe, open_dataset, probe_policy, slot_chunks, window_indices
+from lerobot_sdp.benchmarks.probe import (
+    Probe,
+    network,
+    open_dataset,
+    probe_policy,
+    slot_chunks,
+    window_indices,
+)
 
 REPO_ID = "local/probe"
 
@@ -61,7 +68,8 @@ def built(kind, root):
 
 
 def unet_of(policy):
-    return policy.model.unet if policy.config.type == "sdp" else policy.diffusion.unet
+    """The U-Net the probe reads: the one the policy samples with in eval mode."""
+    return network(policy.eval()).unet
 
 
 def oracle(policy):
@@ -114,6 +122,15 @@ def test_a_network_that_reads_the_actions_off_the_observation_shows_the_gap_in_e
     # the observation matters most where the noise is least: chunk 0's lowest band
     low = sums["shuffled"][0, 0] / sums["count"][0, 0]
     assert float(low) == pytest.approx(float(shuffled.max()))
+
+
+def test_an_sdp_policy_with_ema_is_probed_on_the_averaged_weights_it_samples_with(dataset_root):
+    policy, preprocessor, dataset = built("sdp", dataset_root)
+    assert policy.config.use_ema  # SDPConfig's default
+    policy.ema_model.unet.forward = oracle(policy)  # the raw weights stay an untrained network
+    sums = probe_policy(policy, preprocessor, dataset, Probe(list(range(48)), bands=4, batch_size=16))
+    measured = sums["count"] > 0
+    assert (sums["true"][measured] / sums["count"][measured] < 1e-6).all()
 
 
 def test_windows_and_chunks():

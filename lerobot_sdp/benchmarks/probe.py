@@ -81,6 +81,12 @@ def slot_chunks(horizon: int, n_past: int, chunk_len: int) -> Tensor:
     return (j - n_past).clamp(min=0) // chunk_len
 
 
+def network(policy):
+    """The network the policy samples with in eval mode: SDP's EMA copy when it keeps one (the raw
+    weights otherwise), DP's diffusion model."""
+    return policy._sampling_model() if policy.config.type == "sdp" else policy.diffusion
+
+
 def level_patterns(policy) -> tuple[Tensor, Tensor, PerSlotSchedule]:
     """(P, horizon) training timesteps of every level pattern the policy's sampler visits, each slot's
     chunk (horizon,), and the per-slot schedule."""
@@ -102,9 +108,9 @@ def level_patterns(policy) -> tuple[Tensor, Tensor, PerSlotSchedule]:
 def epsilon_error(policy, schedule, x_t, t, global_cond, eps) -> Tensor:
     """(B, T, A) squared error of the network's epsilon at per-slot timesteps ``t`` (B, T)."""
     if policy.config.type == "sdp":
-        out = policy.model.unet(x_t, t, global_cond=global_cond)
+        out = network(policy).unet(x_t, t, global_cond=global_cond)
     else:  # DP takes one timestep per sample
-        out = policy.diffusion.unet(x_t, t[:, 0], global_cond=global_cond)
+        out = network(policy).unet(x_t, t[:, 0], global_cond=global_cond)
     if policy.config.prediction_type == "sample":
         abar = schedule.alpha_bar(t)
         out = (x_t - abar.sqrt() * out) / (1 - abar).sqrt()
@@ -128,7 +134,7 @@ def probe_policy(policy, preprocessor, dataset, probe: Probe) -> dict:
     sums["shuffled"] = torch.zeros_like(sums["true"])
     count = torch.zeros_like(sums["true"])
     generator = torch.Generator(device).manual_seed(probe.seed)
-    model = policy.model if policy.config.type == "sdp" else policy.diffusion
+    model = network(policy)
     for start in range(0, len(probe.windows), probe.batch_size):
         frames = [dataset[i] for i in probe.windows[start : start + probe.batch_size]]
         batch = preprocessor(torch.utils.data.default_collate(frames))
