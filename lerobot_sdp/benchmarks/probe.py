@@ -107,10 +107,8 @@ def level_patterns(policy) -> tuple[Tensor, Tensor, PerSlotSchedule]:
 
 def epsilon_error(policy, schedule, x_t, t, global_cond, eps) -> Tensor:
     """(B, T, A) squared error of the network's epsilon at per-slot timesteps ``t`` (B, T)."""
-    if policy.config.type == "sdp":
-        out = network(policy).unet(x_t, t, global_cond=global_cond)
-    else:  # DP takes one timestep per sample
-        out = network(policy).unet(x_t, t[:, 0], global_cond=global_cond)
+    steps = t if policy.config.type == "sdp" else t[:, 0]  # DP takes one timestep per sample
+    out = network(policy).unet(x_t, steps, global_cond=global_cond)
     if policy.config.prediction_type == "sample":
         abar = schedule.alpha_bar(t)
         out = (x_t - abar.sqrt() * out) / (1 - abar).sqrt()

@@ -32,6 +32,7 @@ from ..chunk_cost import stream_cost
 from ..configuration_sdp import STEP_CONDITIONINGS
 from ..geometry import ChunkGeometry
 from ..lerobot_cli import Evaluation, evaluate, evaluate_all, last_checkpoint, train, trained_steps
+from ..noise_schemes import SCHEMES as NOISE_SCHEMES
 from ..pusht.data import keypoints_dataset_args
 from ..pusht.evaluation import EVAL_SEED, OBS_TYPE, pusht_eval_args
 from ..robomimic.demonstrators import DEMONSTRATORS
@@ -147,14 +148,8 @@ def policy_args(budget: Budget, policy: str, device: str, dp_horizon: int = DP_H
 
 
 def sdp_args(budget: Budget, device: str, n_chunks: int, schemes: dict | None = None) -> list[str]:
-    weights = {
-        "constant": 0.0,
-        "linear": 0.0,
-        "independent": 0.0,
-        "chunkwise": 0.0,
-        "independent_chunks": 0.0,
-        **(schemes or SCHEMES["cw80_const20"]),
-    }
+    # every scheme written out, unset ones at 0, so no config default leaks into a run
+    weights = {name: 0.0 for name in NOISE_SCHEMES} | (schemes or SCHEMES["cw80_const20"])
     return (
         policy_args(budget, "sdp", device)
         + [f"--policy.n_chunks={n_chunks}"]
