@@ -106,6 +106,17 @@ def test_tiny_comparison_runs_resumes_and_reports(tmp_path, capsys):
         assert "'seed': 7," in log and "'seed': 100000," not in log, eval_log
     default = json.loads((tmp_path / "q" / "results.json").read_text())
     assert default["rows"] == rows and default["sweep"] == sweep
+    # another episode count on the same seed: its own folder, not the 2-episode evaluation reused
+    cli.main([*common, "--runs", "comparison", "--only", "dp", "--eval_seed", "7", "--n_episodes", "1"])
+    one = json.loads((tmp_path / "q" / "eval_seed7_1episodes" / "results.json").read_text())
+    assert one["rows"]["dp"]["n_episodes"] == 1 and [p["n_episodes"] for p in one["rows"]["dp"]["curve"]] == [
+        1,
+        1,
+    ]
+    assert (
+        json.loads((tmp_path / "q" / "eval_seed7" / "results.json").read_text())["rows"] == held_out["rows"]
+    )
+    assert (tmp_path / "q" / "runs" / "dp" / "train.log").read_text() == train_log
     # warm starts from the trained DP: fine-tuned runs log what they copied, scratch runs copy nothing
     cli.main([*common, "--runs", "warmstart", "--only", "warm_flatten", "warm_film", "scratch_film_short"])
     rows = json.loads((tmp_path / "q" / "results.json").read_text())["rows"]
@@ -123,6 +134,11 @@ def test_tiny_comparison_runs_resumes_and_reports(tmp_path, capsys):
 def test_eval_seed_must_be_a_seed(tmp_path):
     with pytest.raises(SystemExit, match="--eval_seed must be at least 0"):
         cli.main(["quality", "--budget", "tiny", "--eval_seed", "-1", "--output_dir", str(tmp_path)])
+
+
+def test_n_episodes_must_be_positive(tmp_path):
+    with pytest.raises(SystemExit, match="--n_episodes must be at least 1, got 0"):
+        cli.main(["quality", "--budget", "tiny", "--n_episodes", "0", "--output_dir", str(tmp_path)])
 
 
 def test_warm_start_runs_need_the_trained_dp(tmp_path):

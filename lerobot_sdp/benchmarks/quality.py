@@ -15,7 +15,8 @@ demonstrations recorded from seed 200000 into OUTPUT_DIR/probe_data.
 Runs resume where they stopped (rerun the same command); `--status` prints where each run stands.
 Results: OUTPUT_DIR/results.json and OUTPUT_DIR/results.md. `--eval_seed N` evaluates the same trained
 models on the episodes from seed N on (held-out episodes, for a configuration chosen on the default
-ones): those evaluations and their report go to `eval_seedN/` folders beside the default ones.
+ones), `--n_episodes M` on M episodes instead of the budget's: those evaluations and their report
+go to `eval_seedN/` (`eval_seedN_Mepisodes/`) folders beside the default ones.
 """
 
 import argparse
@@ -556,6 +557,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "OUTPUT_DIR/eval_seedN and runs/RUN/eval_seedN",
     )
     parser.add_argument(
+        "--n_episodes",
+        type=int,
+        default=None,
+        help="evaluate on this many episodes instead of the budget's (50 robomimic_cpu, 100 cpu); with "
+        "--eval_seed, e.g. 100 fresh episodes for a configuration chosen on the default ones; other "
+        "counts go to their own eval_seedN_Mepisodes folders",
+    )
+    parser.add_argument(
         "--step_conditioning",
         choices=STEP_CONDITIONINGS,
         default=None,
@@ -594,19 +603,38 @@ def task_label(args: argparse.Namespace) -> str:
     return f"robomimic {args.task} (low-dim)" if args.env == "robomimic" else "Push-T keypoints"
 
 
-def evaluation(args: argparse.Namespace, budget: Budget) -> tuple[int, list[str], str]:
-    """The first episode seed, lerobot-eval's flags (the same for every run and sampler) and the
-    evaluations' subfolder: none on the task's own seed, `eval_seedN` on another."""
+@dataclass(frozen=True)
+class Episodes:
+    """The evaluation episodes: `n` from `seed` on, lerobot-eval's flags for them (the same for
+    every run and sampler) and the evaluations' subfolder (`seed_dir`, see `run_dir`)."""
+
+    seed: int
+    n: int
+    eval_args: list[str]
+    seed_dir: str
+
+    def __str__(self) -> str:
+        return f"{self.n} episodes from seed {self.seed}"
+
+
+def evaluation(args: argparse.Namespace, budget: Budget) -> Episodes:
+    """The task's own episodes (no subfolder), or `--eval_seed`/`--n_episodes` others: their own
+    `eval_seedN[_Mepisodes]` subfolder, so that an evaluation of other episodes is never reused."""
     default = ROBOMIMIC_EVAL_SEED if args.env == "robomimic" else EVAL_SEED
     seed = default if args.eval_seed is None else args.eval_seed
     if seed < 0:
         raise SystemExit(f"--eval_seed must be at least 0 (episode i starts from seed N + i), got {seed}.")
-    n, length = budget.n_episodes, budget.episode_length
+    n = budget.n_episodes if args.n_episodes is None else args.n_episodes
+    if n < 1:
+        raise SystemExit(f"--n_episodes must be at least 1, got {n}.")
+    length = budget.episode_length
     if args.env == "robomimic":
         eval_args = robomimic_eval_args(args.task, n, args.device, length, seed)
     else:
         eval_args = pusht_eval_args(OBS_TYPE, n, seed, args.device, length)
-    return seed, eval_args, "" if seed == default else f"eval_seed{seed}"
+    count = "" if n == budget.n_episodes else f"_{n}episodes"
+    seed_dir = "" if (seed, count) == (default, "") else f"eval_seed{seed}{count}"
+    return Episodes(seed, n, eval_args, seed_dir)
 
 
 def training_data(args: argparse.Namespace, output_dir: Path) -> list[str]:
@@ -670,7 +698,8 @@ def run(args: argparse.Namespace) -> dict:
     every_run = [r for kind in kinds for r in runs[kind](budget, args.device)]
     conditioned = with_step_conditioning(every_run, args.step_conditioning)
     selected = only(with_sdp_flags(conditioned, sdp_flags(args)), args.only)
-    eval_seed, eval_args, seed_dir = evaluation(args, budget)
+    episodes = evaluation(args, budget)
+    seed_dir = episodes.seed_dir
     print("\n".join(status(selected, output_dir, seed_dir)), flush=True)
     if args.status:
         return {}
@@ -690,14 +719,20 @@ def run(args: argparse.Namespace) -> dict:
     # rows and sweeps of other run sets in this folder stay in the report
     previous = json.loads(results_file.read_text()) if results_file.exists() else {}
     rows = previous.get("rows", {})
-    report = {"budget": budget_name, "settings": asdict(budget), "eval_seed": eval_seed, "rows": rows}
+    report = {"budget": budget_name, "settings": asdict(budget), "eval_seed": episodes.seed, "rows": rows}
     report["task"] = task_label(args)
     report |= {"sweep": previous["sweep"]} if "sweep" in previous else {}
 
     plan = Plan(
-        output_dir, data_args, common, eval_args, seed_dir, args.curve_every, args.eval_jobs, args.jobs
+        output_dir,
+        data_args,
+        common,
+        episodes.eval_args,
+        seed_dir,
+        args.curve_every,
+        args.eval_jobs,
+        args.jobs,
     )
-    episodes = f"{budget.n_episodes} episodes from seed {eval_seed}"
     for row in run_in_parallel(selected, lambda r: execute(r, plan, args.jobs == 1), args.jobs):
         rows[row["run"]] = row
         write_report(report, report_dir, budget)
