@@ -24,6 +24,7 @@ from lerobot_sdp.benchmarks.quality import (
     add_arguments,
     comparison_runs,
     default_output_dir,
+    evaluation,
     horizon_control_runs,
     markdown,
     only,
@@ -134,6 +135,25 @@ def test_tiny_comparison_runs_resumes_and_reports(tmp_path, capsys):
 def test_eval_seed_must_be_a_seed(tmp_path):
     with pytest.raises(SystemExit, match="--eval_seed must be at least 0"):
         cli.main(["quality", "--budget", "tiny", "--eval_seed", "-1", "--output_dir", str(tmp_path)])
+
+
+def test_other_episodes_are_evaluated_into_a_folder_named_for_them():
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    budget = BUDGETS["robomimic_cpu"]  # 50 episodes from seed 1000
+
+    def episodes(*argv):
+        return evaluation(parser.parse_args(["--env", "robomimic", *argv]), budget)
+
+    own = episodes()
+    assert (own.seed, own.n, own.seed_dir) == (1000, 50, "")
+    assert "--eval.n_episodes=50" in own.eval_args and "--seed=1000" in own.eval_args
+    fresh = episodes("--eval_seed", "5000", "--n_episodes", "100")
+    assert (fresh.seed_dir, str(fresh)) == ("eval_seed5000_100episodes", "100 episodes from seed 5000")
+    assert "--eval.n_episodes=100" in fresh.eval_args and "--seed=5000" in fresh.eval_args
+    assert episodes("--eval_seed", "5000").seed_dir == "eval_seed5000"
+    assert episodes("--n_episodes", "100").seed_dir == "eval_seed1000_100episodes"
+    assert episodes("--n_episodes", "50").seed_dir == ""
 
 
 def test_n_episodes_must_be_positive(tmp_path):
