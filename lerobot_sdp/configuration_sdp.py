@@ -54,8 +54,9 @@ class SDPConfig(PreTrainedConfig):
             num_train_timesteps, T/h staircases, as the authors' code; needs T divisible by h).
         noise_curriculum: constant levels for the first `constant_steps` optimiser steps, then the
             mixture, reached linearly over `ramp_steps` (a switch when 0). Off by default (all 0).
-        min_snr_gamma: Min-SNR-gamma loss weighting per slot (Hang et al. 2023; e.g. 5.0). None (the
-            default): every slot weighs the same, the paper's Eq. 5.
+        min_snr_gamma: Min-SNR-gamma loss weighting per slot (Hang et al. 2023). 5.0 (the default):
+            near-clean slots count less, which lets SDP learn as fast as DP from scratch
+            (docs/algorithm.md). None: every slot weighs the same, the paper's Eq. 5.
         use_ema, ema_power, ema_max_decay: EMA of the weights, used for inference in eval mode.
         step_conditioning: how the per-slot noise levels condition the U-Net. "flatten" (the paper):
             the slots' step embeddings are flattened into one vector (ties the network to its horizon).
@@ -131,7 +132,7 @@ class SDPConfig(PreTrainedConfig):
     noise_schemes: NoiseSchemeWeights = field(default_factory=NoiseSchemeWeights)
     chunkwise_grid: str = "sampler"
     noise_curriculum: NoiseCurriculum = field(default_factory=NoiseCurriculum)
-    min_snr_gamma: float | None = None
+    min_snr_gamma: float | None = 5.0
     # As LeRobot's DP: copy-padded actions past an episode's end stay in the loss (the policy learns
     # to hold the final pose). Masking them made no measurable difference (docs/results.md).
     do_mask_loss_for_padding: bool = False

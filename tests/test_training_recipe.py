@@ -135,10 +135,15 @@ def test_curriculum_switches_at_its_step_and_resumes_from_a_checkpoint(tmp_path,
     assert constant_rows(fresh, cfg, recording(fresh)) == 1.0
 
 
-def test_without_a_curriculum_the_loss_draws_nothing_more(tmp_path):
-    """Defaults keep the earlier training draw for draw: the same loss from the same seed."""
+def test_the_default_recipe_weighs_slots_by_min_snr_5():
     cfg = tiny_config()
-    assert cfg.chunkwise_grid == "sampler" and not cfg.noise_curriculum.enabled and cfg.min_snr_gamma is None
+    assert cfg.min_snr_gamma == 5.0 and cfg.chunkwise_grid == "sampler" and not cfg.noise_curriculum.enabled
+
+
+def test_the_papers_unweighted_loss_draws_nothing_more(tmp_path):
+    """`min_snr_gamma=None` and no curriculum train as the paper's Eq. 5, draw for draw: the same loss
+    from the same seed."""
+    cfg = tiny_config(min_snr_gamma=None)
     policy = SDPPolicy(cfg).train()
     batch = training_batch(cfg)
     torch.manual_seed(1)
@@ -239,6 +244,7 @@ def test_the_new_options_parse_from_the_command_line_and_refuse_bad_values():
         "independent_chunks": 0.0,
     }
     assert cfg.chunkwise_grid == "training_table" and cfg.min_snr_gamma == 5.0
+    assert draccus.parse(SDPConfig, args=["--min_snr_gamma=null"]).min_snr_gamma is None  # the paper's loss
     assert cfg.noise_curriculum == NoiseCurriculum(constant_steps=2000, ramp_steps=1000)
     with pytest.raises(ValueError, match="noise_schemes weights must be >= 0"):
         NoiseSchemeWeights(constant=-0.5, chunkwise=0.5)
