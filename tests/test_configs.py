@@ -30,7 +30,10 @@ def test_config_loads(path):
     assert cfg.policy.push_to_hub is False
     geometry = cfg.policy.geometry
     assert geometry.num_inference_steps % geometry.n_chunks == 0
-    if "paper" in path.name:  # the authors' geometry: To=2, Tb=8, h=2 -> horizon 20
+    if "paper" in path.name:  # the authors' geometry: To=2, Tb=8, h=2 -> horizon 20, unweighted loss
         assert (cfg.policy.horizon, cfg.policy.n_action_steps) == (20, 8)
+        assert cfg.policy.min_snr_gamma is None
+    else:  # our recipe (docs/algorithm.md, section 11)
+        assert cfg.policy.min_snr_gamma == 5.0
     if "image" in path.name:
         assert cfg.policy.pretrained_backbone_weights is None and cfg.policy.use_group_norm
