@@ -36,9 +36,10 @@ def test_training_step_reduces_loss_on_a_fixed_batch(image):
 
 
 def test_padded_actions_do_not_contribute_to_the_loss_when_masked():
-    cfg = tiny_config(prediction_type="sample", do_mask_loss_for_padding=True)
+    # unweighted (min_snr_gamma=None), so the loss is mean(a^2) over the slots that count
+    cfg = tiny_config(prediction_type="sample", do_mask_loss_for_padding=True, min_snr_gamma=None)
     policy = SDPPolicy(cfg)
-    policy.model.unet.forward = lambda x, t, global_cond=None: torch.zeros_like(x)  # loss = mean(a^2)
+    policy.model.unet.forward = lambda x, t, global_cond=None: torch.zeros_like(x)
     batch = training_batch(cfg)
     batch["action_is_pad"][:, -6:] = True
     batch["action"][:, -6:] = 100.0  # garbage where padded
