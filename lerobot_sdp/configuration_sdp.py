@@ -55,8 +55,8 @@ class SDPConfig(PreTrainedConfig):
         noise_curriculum: constant levels for the first `constant_steps` optimiser steps, then the
             mixture, reached linearly over `ramp_steps` (a switch when 0). Off by default (all 0).
         min_snr_gamma: Min-SNR-gamma loss weighting per slot (Hang et al. 2023). 5.0 (the default):
-            near-clean slots count less, which lets SDP learn as fast as DP from scratch
-            (docs/algorithm.md). None: every slot weighs the same, the paper's Eq. 5.
+            near-clean slots count less, which lets SDP h = 2 learn robomimic Can from scratch as
+            fast as DP (docs/algorithm.md). None: every slot weighs the same, the paper's Eq. 5.
         use_ema, ema_power, ema_max_decay: EMA of the weights, used for inference in eval mode.
         step_conditioning: how the per-slot noise levels condition the U-Net. "flatten" (the paper):
             the slots' step embeddings are flattened into one vector (ties the network to its horizon).

@@ -368,6 +368,15 @@ def test_robot_clients_drive_pusht_sim_through_the_server(server, tmp_path):
         a.stop()  # mid-episode
         wait_for(lambda: len(service.sessions) == 1, timeout=10)  # dropped after session_timeout_s
         (left,) = service.sessions.values()
+        # the plans it serves, kept: once its client stops, its idle session is dropped and reset
+        served, serve = [], left.sdp_reply
+
+        def spy(*args, **kwargs):
+            actions = serve(*args, **kwargs)
+            served.append(left.plan)
+            return actions
+
+        left.sdp_reply = spy
         reached = left.plan.end
         wait_for(lambda: left.plan.end >= reached + 2 * TB)  # the other client is still served
     finally:
@@ -377,8 +386,9 @@ def test_robot_clients_drive_pusht_sim_through_the_server(server, tmp_path):
         log = cli.communicate(timeout=30)[0]
     stats = json.loads(stats_path.read_text())
     executed = stats["actions_sent"] - 1  # the timestep of its last action
-    assert left.plan.start <= executed < left.plan.end <= executed + 1 + 3 * TB, (
-        left.plan.start,
+    last = served[-1]
+    assert last.start <= executed < last.end <= executed + 1 + 3 * TB, (
+        last.start,
         executed,
         log,
     )
