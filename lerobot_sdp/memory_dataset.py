@@ -8,11 +8,12 @@ CPU, which is why the CPU configs needed DataLoader workers holding a core of th
 
 A dataset without cameras (every feature a number or a vector) fits in memory many times over: Push-T
 keypoints is 25,650 frames of 38 numbers, 4 MB. For such a dataset the reader below builds the table
-once, as one tensor per column, and serves each sample by indexing those tensors: the frame's row,
-each windowed key at LeRobot's clamped indices, LeRobot's padding masks and task string. The values,
+once, as one tensor per column, and serves a whole batch by indexing those tensors once
+(`LeRobotDataset.__getitems__`, which the DataLoader calls with the batch's indices): the frames' rows,
+each windowed key at LeRobot's clamped indices, LeRobot's padding masks and task strings. The values,
 dtypes, shapes and keys are LeRobot's, sample for sample (tests/test_memory_dataset.py compares every
-index of a small dataset, episode ends included). With the data costing about 0.05 ms a sample, no
-worker process is needed and both cores go to the update (docs/benchmarks.md, "Training at the
+index of a small dataset, episode ends included). A Push-T batch of 64 costs about 1 ms, collated;
+no worker process is needed and both cores go to the update (docs/benchmarks.md, "Training at the
 hardware's limit").
 
 `install()` runs when `lerobot_sdp` is imported, so by LeRobot's plugin discovery at the start of
@@ -55,18 +56,28 @@ class MemoryTable:
             self.row_of[absolute] = torch.arange(len(absolute))
 
     def item(self, idx: int) -> dict:
-        item = {key: column[idx] for key, column in self.columns.items()}
-        ep, frame = int(item["episode_index"]), int(item["index"])
-        start, end = int(self.ep_start[ep]), int(self.ep_end[ep])
+        return self.items([idx])[0]
+
+    def items(self, indices) -> list[dict]:
+        """The samples at `indices`, gathered for all of them at once: LeRobot's window of each
+        windowed key (the frame plus its deltas, clamped to the episode) and its padding mask."""
+        idx = torch.as_tensor(indices, dtype=torch.long)
+        batch = {key: column[idx] for key, column in self.columns.items()}
+        frame = batch["index"].unsqueeze(1)
+        start = self.ep_start[batch["episode_index"]].unsqueeze(1)
+        end = self.ep_end[batch["episode_index"]].unsqueeze(1)
         padding = {}
         for key, delta in self.deltas.items():
             wanted = frame + delta
             padding[f"{key}_is_pad"] = (wanted < start) | (wanted >= end)
-            rows = wanted.clamp(start, end - 1)
-            item[key] = self.columns[key][rows if self.row_of is None else self.row_of[rows]]
-        item.update(padding)
-        item["task"] = self.task_names[int(item["task_index"])]
-        return item
+            rows = torch.minimum(torch.maximum(wanted, start), end - 1)
+            batch[key] = self.columns[key][rows if self.row_of is None else self.row_of[rows]]
+        batch.update(padding)
+        keys = list(batch)
+        tasks = [self.task_names[t] for t in batch["task_index"].tolist()]
+        # one sample per row, as views of the gathered tensors: the DataLoader's collate stacks them
+        rows = zip(*(batch[key].unbind(0) for key in keys), strict=True)
+        return [dict(zip(keys, row, strict=True)) | {"task": task} for row, task in zip(rows, tasks, strict=True)]
 
 
 def why_not_in_memory(reader) -> str | None:
@@ -128,6 +139,7 @@ def install() -> None:
     if os.environ.get(ENV, "1") == "0":
         return
     from lerobot.datasets.dataset_reader import DatasetReader
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     original = DatasetReader.get_item
     if getattr(original, "serves_from_memory", False):
@@ -140,3 +152,13 @@ def install() -> None:
 
     get_item.serves_from_memory = True
     DatasetReader.get_item = get_item
+    LeRobotDataset.__getitems__ = get_items
+
+
+def get_items(dataset, indices: list[int]) -> list[dict]:
+    """`LeRobotDataset.__getitems__`, which the DataLoader calls with a whole batch of indices: one
+    gather from the table for the batch instead of one per sample, or LeRobot's reader per sample."""
+    reader = dataset._ensure_reader()
+    recording = dataset.writer is not None and not dataset._is_finalized  # __getitem__ says why not
+    table = None if recording or reader.hf_dataset is None else table_of(reader)
+    return [dataset[i] for i in indices] if table is None else table.items(indices)

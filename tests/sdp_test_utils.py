@@ -98,11 +98,15 @@ def history(config, batch_size: int = 2):
     return {k: v.unsqueeze(1).expand(-1, config.n_obs_steps, *v.shape[1:]) for k, v in obs.items()}
 
 
+PUSHT_TASK = "Push the T-shaped block onto the T-shaped target."
+
+
 def make_tiny_pusht_dataset(
-    root, image: bool = False, n_episodes: int = 2, length: int = 30, seed: int = 0, lengths=None
+    root, image: bool = False, n_episodes: int = 2, length: int = 30, seed: int = 0, lengths=None, tasks=None
 ):
     """A small random LeRobotDataset with Push-T's schema (state + keypoints, or state + 96 px image);
-    `lengths` gives every episode its own length (else n_episodes x length)."""
+    `lengths` gives every episode its own length (else n_episodes x length), `tasks` its own task
+    string (else Push-T's for all)."""
     import numpy as np
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
@@ -123,7 +127,8 @@ def make_tiny_pusht_dataset(
         features["observation.environment_state"] = {"dtype": "float32", "shape": (16,), "names": None}
     ds = LeRobotDataset.create("local/tiny_pusht", fps=10, features=features, root=root, use_videos=False)
     rng = np.random.default_rng(seed)
-    for episode_length in lengths or [length] * n_episodes:
+    lengths = lengths or [length] * n_episodes
+    for episode_length, task in zip(lengths, tasks or [PUSHT_TASK] * len(lengths), strict=True):
         for i in range(episode_length):
             frame = {
                 "observation.state": rng.uniform(0, 512, 2).astype(np.float32),
@@ -131,7 +136,7 @@ def make_tiny_pusht_dataset(
                 "next.reward": np.array([rng.uniform()], dtype=np.float32),
                 "next.done": np.array([i == episode_length - 1]),
                 "next.success": np.array([False]),
-                "task": "Push the T-shaped block onto the T-shaped target.",
+                "task": task,
             }
             if image:
                 frame["observation.image"] = rng.integers(0, 255, (96, 96, 3), dtype=np.uint8)
