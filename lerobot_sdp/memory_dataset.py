@@ -77,7 +77,8 @@ class MemoryTable:
         tasks = [self.task_names[t] for t in batch["task_index"].tolist()]
         # one sample per row, as views of the gathered tensors: the DataLoader's collate stacks them
         rows = zip(*(batch[key].unbind(0) for key in keys), strict=True)
-        return [dict(zip(keys, row, strict=True)) | {"task": task} for row, task in zip(rows, tasks, strict=True)]
+        samples = [dict(zip(keys, row, strict=True)) for row in rows]
+        return [sample | {"task": task} for sample, task in zip(samples, tasks, strict=True)]
 
 
 def why_not_in_memory(reader) -> str | None:
