@@ -41,15 +41,56 @@ def subprocess_env(threads: int = 1) -> dict[str, str]:
     return {name: count for name in THREAD_DEFAULTS} | dict(os.environ)
 
 
+def command_setting(train_args: list[str], key: str, default=None):
+    """A setting of a `lerobot-train` command line (`key` dotted, e.g. "policy.device"): its flag, else
+    its config file's value, else `default`. A flag's value is the string the user typed."""
+    flags = dict(a.removeprefix("--").split("=", 1) for a in train_args if a.startswith("--") and "=" in a)
+    if key in flags:
+        return flags[key]
+    node = json.loads(Path(flags["config_path"]).read_text()) if "config_path" in flags else {}
+    for part in key.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return default
+        node = node[part]
+    return node
+
+
 def num_workers(train_args: list[str]) -> int:
     """The DataLoader workers a `lerobot-train` command line asks for: its `--num_workers`, else its
     config file's, else LeRobot's default."""
-    flags = dict(a.removeprefix("--").split("=", 1) for a in train_args if a.startswith("--") and "=" in a)
-    if "num_workers" in flags:
-        return int(flags["num_workers"])
-    if "config_path" in flags:
-        return json.loads(Path(flags["config_path"]).read_text()).get("num_workers", LEROBOT_NUM_WORKERS)
-    return LEROBOT_NUM_WORKERS
+    return int(command_setting(train_args, "num_workers", LEROBOT_NUM_WORKERS))
+
+
+# bf16 autocast where the CPU multiplies bf16 natively: 1.27x the training steps/s of float32 on a
+# Zen 4 (avx512_bf16), the same loss (docs/benchmarks.md); float32 elsewhere, where bf16 is emulated.
+NATIVE_BF16_FLAGS = ("avx512_bf16", "amx_bf16")
+PRECISIONS = ("auto", "fp32", "bf16")
+
+
+def native_bf16_flag(cpuinfo: Path = Path("/proc/cpuinfo")) -> str | None:
+    """The CPU flag by which this machine computes bf16 natively (Linux's cpuinfo), or None."""
+    try:
+        lines = cpuinfo.read_text().splitlines()
+    except OSError:  # not Linux
+        return None
+    present = {flag for line in lines if line.startswith("flags") for flag in line.split(":", 1)[1].split()}
+    return next((flag for flag in NATIVE_BF16_FLAGS if flag in present), None)
+
+
+def precision_flags(train_args: list[str], precision: str = "auto") -> tuple[list[str], str]:
+    """The `--policy.use_amp` flag a training gets, and why. `bf16` / `fp32` choose; `auto` turns bf16
+    autocast on for a training on a CPU with native bf16 (`--policy.device=cpu`), and leaves a command
+    line or config that sets use_amp itself, or a training on another device, as it is."""
+    if precision != "auto":
+        return [f"--policy.use_amp={str(precision == 'bf16').lower()}"], f"{precision}, as asked"
+    if command_setting(train_args, "policy.use_amp") is not None:
+        return [], "use_amp as the command line or config sets it"
+    if command_setting(train_args, "policy.device") != "cpu":
+        return [], "LeRobot's default: the training names no CPU device"
+    flag = native_bf16_flag()
+    if flag is None:
+        return [], "fp32: this CPU has no native bf16"
+    return ["--policy.use_amp=true"], f"bf16 autocast: this CPU computes bf16 natively ({flag})"
 
 
 def training_threads(train_args: list[str], concurrent: int = 1) -> int:
@@ -118,6 +159,11 @@ def trained_steps(train_dir: Path) -> int:
     return json.loads(state.read_text())["step"] if state.exists() else 0
 
 
+def trained_precision(model_dir: Path) -> str:
+    """The precision a saved policy was trained (and is evaluated) in: its config's use_amp."""
+    return "bf16 autocast" if json.loads((model_dir / "config.json").read_text()).get("use_amp") else "fp32"
+
+
 def train_command(processes: int = 1) -> list[str]:
     """`lerobot-train`, or with several processes the same script under torchrun (data parallel on
     one machine; `--standalone` picks a free port, so that two runs can share a machine)."""
@@ -135,11 +181,12 @@ def train(
     echo: bool = True,
     processes: int = 1,
     concurrent: int = 1,
+    precision: str = "auto",
 ) -> Path:
     """`lerobot-train ARGS --steps=STEPS --output_dir=TRAIN_DIR` on `processes` processes, resumed or
     skipped when a checkpoint exists, its torch threads shared with `concurrent - 1` other trainings
-    that run at once. Returns the final pretrained_model directory. `echo=False`: the output goes to
-    `log` only."""
+    that run at once, at `precision` (`precision_flags`; a resumed run keeps its own). Returns the final
+    pretrained_model directory. `echo=False`: the output goes to `log` only."""
     model_dir = last_checkpoint(train_dir) / "pretrained_model"
     done = trained_steps(train_dir)
     if done >= steps:
@@ -151,7 +198,9 @@ def train(
     elif train_dir.exists():
         raise CLIError(f"{train_dir} exists but holds no checkpoint: move it away or delete it, then rerun.")
     else:
-        cmd = [*train_command(processes), *args, f"--steps={steps}", f"--output_dir={train_dir}"]
+        amp, why = precision_flags(args, precision)
+        print(f"[precision] {why}", flush=True)
+        cmd = [*train_command(processes), *args, *amp, f"--steps={steps}", f"--output_dir={train_dir}"]
     run_logged(cmd, log, echo, threads=training_threads(cmd, concurrent) if processes == 1 else 1)
     return model_dir
 

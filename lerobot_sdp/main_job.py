@@ -26,7 +26,17 @@ from lerobot.configs.policies import PreTrainedConfig
 
 from . import shipped_configs
 from .chunk_cost import stream_cost
-from .lerobot_cli import CLIError, eval_info, evaluate, num_workers, train, trained_steps, training_threads
+from .lerobot_cli import (
+    PRECISIONS,
+    CLIError,
+    eval_info,
+    evaluate,
+    num_workers,
+    train,
+    trained_precision,
+    trained_steps,
+    training_threads,
+)
 
 STAGES = ("data", "train", "eval", "measure")
 
@@ -45,6 +55,13 @@ def job_parser(description: str, output_dir: str, config: str | None) -> argpars
     p.add_argument("--eval_episodes", type=int, default=50)
     p.add_argument("--steps", type=int, default=None, help="override the config's training steps")
     p.add_argument("--device", default="cpu")
+    p.add_argument(
+        "--precision",
+        choices=PRECISIONS,
+        default="auto",
+        help="training precision; auto: bf16 autocast on a CPU with native bf16 (avx512_bf16, AMX), "
+        "else fp32",
+    )
     group = p.add_mutually_exclusive_group()
     group.add_argument("--resume", action="store_true", help="reuse finished stages, resume training")
     group.add_argument("--overwrite", action="store_true", help="delete --output_dir and start over")
@@ -168,7 +185,7 @@ def train_evaluate_measure(
         f"--job_name={job_name}",
     ]
     with timings.stage("train", reused=trained_steps(train_dir) >= steps):
-        model_dir = train(train_dir, train_args, steps, logs / "train.log")
+        model_dir = train(train_dir, train_args, steps, logs / "train.log", precision=args.precision)
     with timings.stage("eval", reused=eval_info(eval_dir).exists()):
         metrics = evaluate(model_dir, eval_dir, eval_args, logs / "eval.log")
     videos = rollout_videos(eval_dir)
@@ -194,6 +211,7 @@ def train_evaluate_measure(
         "train_steps_per_s": steps_done / train_s if train_s else None,
         "train_num_workers": num_workers(train_args),
         "train_torch_threads": training_threads(train_args),
+        "train_precision": trained_precision(model_dir),
         **timing,
     }
 
@@ -215,7 +233,7 @@ def print_summary(title: str, summary: dict, output_dir: Path) -> None:
             f"training            {summary['train_steps']} steps, "
             f"{summary['train_steps_per_s']:.2f} steps/s "
             f"(start-up and checkpoints included; {summary['train_torch_threads']} torch threads, "
-            f"{summary['train_num_workers']} DataLoader workers)"
+            f"{summary['train_num_workers']} DataLoader workers, {summary.get('train_precision', 'fp32')})"
         )
     print(f"checkpoint          {summary['model_dir']}")
     n_videos = len(summary.get("video_files", []))

@@ -7,6 +7,8 @@ import threading
 import time
 from pathlib import Path
 
+import pytest
+
 # A parent started as a shell's `cmd &` starts: SIGINT ignored. It starts a Python child, waits until
 # the child runs, sends it SIGINT (as our deployment bench and tests stop LeRobot's robot client) and
 # prints the child's exit code, or "ignored" when the child kept running.
@@ -156,3 +158,71 @@ def test_a_training_beside_others_gets_its_share_of_the_cores(tmp_path, monkeypa
             tmp_path / f"t{concurrent}", ["--num_workers=0"], 1, tmp_path / "log", concurrent=concurrent
         )
     assert given == [4, 2]
+
+
+@pytest.mark.parametrize(
+    ("flags", "expected"),
+    [
+        ("fpu avx2 avx512f avx512_bf16 avx512_vnni", "avx512_bf16"),  # Zen 4, Sapphire Rapids
+        ("fpu avx2 amx_bf16 amx_tile", "amx_bf16"),
+        ("fpu avx2 fma avx512f", None),  # Zen 3 has no avx512 at all; Skylake-X no bf16
+        ("fpu avx512_bf16x", None),  # whole flags only
+    ],
+)
+def test_native_bf16_is_read_from_the_cpus_flags(tmp_path, flags, expected):
+    from lerobot_sdp.lerobot_cli import native_bf16_flag
+
+    cpuinfo = tmp_path / "cpuinfo"
+    cpuinfo.write_text(f"processor\t: 0\nmodel name\t: CPU\nflags\t\t: {flags}\n\nprocessor\t: 1\n")
+    assert native_bf16_flag(cpuinfo) == expected
+    assert native_bf16_flag(tmp_path / "absent") is None  # not Linux: no bf16 claimed
+
+
+def test_precision_flags_turn_bf16_on_for_cpu_trainings_on_native_bf16_only(tmp_path, monkeypatch):
+    from lerobot_sdp import lerobot_cli
+
+    config = tmp_path / "c.json"
+    config.write_text(json.dumps({"policy": {"type": "sdp"}}))
+    chosen = tmp_path / "amp.json"
+    chosen.write_text(json.dumps({"policy": {"type": "sdp", "use_amp": False}}))
+    cpu = [f"--config_path={config}", "--policy.device=cpu"]
+
+    def flags(args, precision="auto"):
+        return lerobot_cli.precision_flags(args, precision)[0]
+
+    monkeypatch.setattr(lerobot_cli, "native_bf16_flag", lambda: "avx512_bf16")
+    assert flags(cpu) == ["--policy.use_amp=true"]
+    assert flags([f"--config_path={config}", "--policy.device=cuda"]) == []  # LeRobot's own choice there
+    assert flags([f"--config_path={config}"]) == []  # no device named: LeRobot picks one
+    assert flags([*cpu, "--policy.use_amp=false"]) == []  # the user's flag stands
+    assert flags([f"--config_path={chosen}", "--policy.device=cpu"]) == []  # so does the config's
+    assert flags(cpu, "fp32") == ["--policy.use_amp=false"]
+    monkeypatch.setattr(lerobot_cli, "native_bf16_flag", lambda: None)
+    assert flags(cpu) == []  # emulated bf16 is slower than fp32
+    assert flags(cpu, "bf16") == ["--policy.use_amp=true"]
+
+
+def test_a_new_training_gets_the_precision_and_a_resumed_one_keeps_its_own(tmp_path, monkeypatch):
+    from lerobot_sdp import lerobot_cli
+
+    commands = []
+    monkeypatch.setattr(lerobot_cli, "run_logged", lambda cmd, log, echo, threads=1: commands.append(cmd))
+    monkeypatch.setattr(lerobot_cli, "native_bf16_flag", lambda: "amx_bf16")
+    lerobot_cli.train(tmp_path / "new", ["--policy.device=cpu"], 10, tmp_path / "log")
+    assert "--policy.use_amp=true" in commands[-1]
+    state = lerobot_cli.last_checkpoint(tmp_path / "old") / "training_state"
+    state.mkdir(parents=True)
+    (state / "training_step.json").write_text(json.dumps({"step": 5}))
+    (state.parent / "pretrained_model").mkdir()
+    (state.parent / "pretrained_model" / "train_config.json").write_text(json.dumps({"num_workers": 0}))
+    lerobot_cli.train(tmp_path / "old", ["--policy.device=cpu"], 10, tmp_path / "log", precision="fp32")
+    assert "--resume=true" in commands[-1] and not any("use_amp" in a for a in commands[-1])
+
+
+def test_the_trained_precision_is_read_from_the_saved_config(tmp_path):
+    from lerobot_sdp.lerobot_cli import trained_precision
+
+    (tmp_path / "config.json").write_text(json.dumps({"type": "sdp", "use_amp": True}))
+    assert trained_precision(tmp_path) == "bf16 autocast"
+    (tmp_path / "config.json").write_text(json.dumps({"type": "sdp", "use_amp": False}))
+    assert trained_precision(tmp_path) == "fp32"

@@ -32,7 +32,16 @@ from .. import shipped_configs
 from ..chunk_cost import stream_cost
 from ..configuration_sdp import STEP_CONDITIONINGS
 from ..geometry import ChunkGeometry
-from ..lerobot_cli import Evaluation, evaluate, evaluate_all, last_checkpoint, train, trained_steps
+from ..lerobot_cli import (
+    PRECISIONS,
+    Evaluation,
+    evaluate,
+    evaluate_all,
+    last_checkpoint,
+    train,
+    trained_precision,
+    trained_steps,
+)
 from ..noise_schemes import SCHEMES as NOISE_SCHEMES
 from ..pusht.data import keypoints_dataset_args
 from ..pusht.evaluation import EVAL_SEED, OBS_TYPE, pusht_eval_args
@@ -307,6 +316,7 @@ class Plan:
     curve_every: int | None = None
     eval_jobs: int = 1
     jobs: int = 1  # runs at once: each training gets its share of the cores
+    precision: str = "auto"  # lerobot_cli.precision_flags
 
 
 def execute(run: Run, plan: Plan, echo: bool = True) -> dict:
@@ -318,7 +328,8 @@ def execute(run: Run, plan: Plan, echo: bool = True) -> dict:
     timing = json.loads(timing_file.read_text()) if timing_file.exists() else {"train_wall_s": 0.0}
     t0 = time.monotonic()
     train_args = [*plan.data_args, *plan.common, *run.policy_args]
-    model_dir = train(root / "train", train_args, run.steps, root / "train.log", echo, concurrent=plan.jobs)
+    at = {"concurrent": plan.jobs, "precision": plan.precision}
+    model_dir = train(root / "train", train_args, run.steps, root / "train.log", echo, **at)
     if not run.trains_as:
         timing["train_wall_s"] += time.monotonic() - t0
         timing_file.write_text(json.dumps(timing))
@@ -330,6 +341,7 @@ def execute(run: Run, plan: Plan, echo: bool = True) -> dict:
     evaluate(model_dir, here / "eval", eval_args, here / "eval.log", echo)
     cost = stream_cost(model_dir, overrides=run.eval_overrides)  # alone: no evaluation runs now
     row = {"run": run.name, **episode_stats(here / "eval"), "steps": run.steps, **cost}
+    row["train_precision"] = trained_precision(model_dir)
     row["train_wall_s"] = round(train_wall_s(root / "train.log", run.steps, timing["train_wall_s"]), 1)
     losses = loss_logs(root / "train.log", run.steps) if (root / "train.log").exists() else []
     row["final_loss"] = losses[-1]["loss"] if losses else None
@@ -521,6 +533,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--dataset_root", type=Path, default=None)
     parser.add_argument("--device", default="cpu")
+    parser.add_argument(
+        "--precision",
+        choices=PRECISIONS,
+        default="auto",
+        help="every training's precision (a resumed run keeps its own); auto: bf16 autocast on a CPU "
+        "with native bf16 (avx512_bf16, AMX), else fp32",
+    )
     parser.add_argument("--status", action="store_true", help="print where each run stands and exit")
     parser.add_argument(
         "--steps",
@@ -732,6 +751,7 @@ def run(args: argparse.Namespace) -> dict:
         args.curve_every,
         args.eval_jobs,
         args.jobs,
+        args.precision,
     )
     for row in run_in_parallel(selected, lambda r: execute(r, plan, args.jobs == 1), args.jobs):
         rows[row["run"]] = row
