@@ -506,13 +506,14 @@ def test_runs_trained_at_once_share_the_cores(tmp_path, monkeypatch):
 
     seen = []
 
-    def fake_train(*args, concurrent=1, **kwargs):
-        seen.append(concurrent)
+    def fake_train(*args, concurrent=1, precision="auto", **kwargs):
+        seen.append((concurrent, precision))
         raise StopError
 
     make_tiny_pusht_dataset(tmp_path / "data")
     monkeypatch.setattr(quality, "train", fake_train)
-    for jobs in ("1", "2"):
+    for jobs, precision in (("1", "auto"), ("2", "fp32")):
         with pytest.raises(StopError):
-            cli.main([*tiny_quality_args(tmp_path), "--runs", "comparison", "--only", "dp", "--jobs", jobs])
-    assert seen == [1, 2]
+            args = ["--runs", "comparison", "--only", "dp", "--jobs", jobs, "--precision", precision]
+            cli.main([*tiny_quality_args(tmp_path), *args])
+    assert seen == [(1, "auto"), (2, "fp32")]  # the cores shared, the precision as asked

@@ -98,6 +98,7 @@ def test_console_summary_shows_latency_checkpoint_videos_and_resume(tmp_path, ca
         "train_steps_per_s": 2.0,
         "train_torch_threads": 2,
         "train_num_workers": 0,
+        "train_precision": "bf16 autocast",
     }
     print_summary("SDP on Push-T (keypoints)", summary, tmp_path)
     out = capsys.readouterr().out
@@ -108,3 +109,4 @@ def test_console_summary_shows_latency_checkpoint_videos_and_resume(tmp_path, ca
     assert "195 s in all (data 12 s, train 150 s, eval 30 s, measure 3 s; resumed in session 2" in out
     assert "train reused, eval ran" in out
     assert "300 steps, 2.00 steps/s (start-up and checkpoints included; 2 torch threads, 0 DataLoader" in out
+    assert "0 DataLoader workers, bf16 autocast)" in out
