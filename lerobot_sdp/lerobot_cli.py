@@ -61,8 +61,8 @@ def num_workers(train_args: list[str]) -> int:
     return int(command_setting(train_args, "num_workers", LEROBOT_NUM_WORKERS))
 
 
-# bf16 autocast where the CPU multiplies bf16 natively: 1.27x the training steps/s of float32 on a
-# Zen 4 (avx512_bf16), the same loss (docs/benchmarks.md); float32 elsewhere, where bf16 is emulated.
+# bf16 autocast where the CPU multiplies bf16 natively: 0.75x float32's training step on a Zen 4
+# (avx512_bf16), the same loss (docs/benchmarks.md); float32 elsewhere, which has no bf16 arithmetic.
 NATIVE_BF16_FLAGS = ("avx512_bf16", "amx_bf16")
 PRECISIONS = ("auto", "fp32", "bf16")
 
