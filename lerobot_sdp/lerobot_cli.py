@@ -181,12 +181,13 @@ def train(
     echo: bool = True,
     processes: int = 1,
     concurrent: int = 1,
-    precision: str = "auto",
+    precision: str | None = None,
 ) -> Path:
     """`lerobot-train ARGS --steps=STEPS --output_dir=TRAIN_DIR` on `processes` processes, resumed or
     skipped when a checkpoint exists, its torch threads shared with `concurrent - 1` other trainings
-    that run at once, at `precision` (`precision_flags`; a resumed run keeps its own). Returns the final
-    pretrained_model directory. `echo=False`: the output goes to `log` only."""
+    that run at once, at `precision` (`precision_flags`; None: as ARGS and the config say; a resumed run
+    keeps its own). Returns the final pretrained_model directory. `echo=False`: the output goes to `log`
+    only."""
     model_dir = last_checkpoint(train_dir) / "pretrained_model"
     done = trained_steps(train_dir)
     if done >= steps:
@@ -198,7 +199,7 @@ def train(
     elif train_dir.exists():
         raise CLIError(f"{train_dir} exists but holds no checkpoint: move it away or delete it, then rerun.")
     else:
-        amp, why = precision_flags(args, precision)
+        amp, why = precision_flags(args, precision) if precision else ([], "as ARGS and the config say")
         print(f"[precision] {why}", flush=True)
         cmd = [*train_command(processes), *args, *amp, f"--steps={steps}", f"--output_dir={train_dir}"]
     run_logged(cmd, log, echo, threads=training_threads(cmd, concurrent) if processes == 1 else 1)

@@ -41,9 +41,11 @@ from .lerobot_cli import (
 STAGES = ("data", "train", "eval", "measure")
 
 
-def job_parser(description: str, output_dir: str, config: str | None) -> argparse.ArgumentParser:
+def job_parser(
+    description: str, output_dir: str, config: str | None, precision: str = "auto"
+) -> argparse.ArgumentParser:
     """The options every main job has; the task adds its data options. `config`: the shipped config
-    by default (None: the task picks one after parsing)."""
+    by default (None: the task picks one after parsing); `precision`: the default of --precision."""
     p = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--output_dir", type=Path, default=Path(output_dir))
     p.add_argument(
@@ -58,9 +60,9 @@ def job_parser(description: str, output_dir: str, config: str | None) -> argpars
     p.add_argument(
         "--precision",
         choices=PRECISIONS,
-        default="auto",
-        help="training precision; auto: bf16 autocast on a CPU with native bf16 (avx512_bf16, AMX), "
-        "else fp32",
+        default=precision,
+        help=f"training precision (default: {precision}); auto: bf16 autocast on a CPU with native bf16 "
+        "(avx512_bf16, AMX), else fp32",
     )
     group = p.add_mutually_exclusive_group()
     group.add_argument("--resume", action="store_true", help="reuse finished stages, resume training")

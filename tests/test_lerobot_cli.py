@@ -208,8 +208,10 @@ def test_a_new_training_gets_the_precision_and_a_resumed_one_keeps_its_own(tmp_p
     commands = []
     monkeypatch.setattr(lerobot_cli, "run_logged", lambda cmd, log, echo, threads=1: commands.append(cmd))
     monkeypatch.setattr(lerobot_cli, "native_bf16_flag", lambda: "amx_bf16")
-    lerobot_cli.train(tmp_path / "new", ["--policy.device=cpu"], 10, tmp_path / "log")
+    lerobot_cli.train(tmp_path / "new", ["--policy.device=cpu"], 10, tmp_path / "log", precision="auto")
     assert "--policy.use_amp=true" in commands[-1]
+    lerobot_cli.train(tmp_path / "plain", ["--policy.device=cpu"], 10, tmp_path / "log")
+    assert not any("use_amp" in a for a in commands[-1])  # no precision asked: the config's
     state = lerobot_cli.last_checkpoint(tmp_path / "old") / "training_state"
     state.mkdir(parents=True)
     (state / "training_step.json").write_text(json.dumps({"step": 5}))

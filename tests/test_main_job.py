@@ -110,3 +110,12 @@ def test_console_summary_shows_latency_checkpoint_videos_and_resume(tmp_path, ca
     assert "train reused, eval ran" in out
     assert "300 steps, 2.00 steps/s (start-up and checkpoints included; 2 torch threads, 0 DataLoader" in out
     assert "0 DataLoader workers, bf16 autocast)" in out
+
+
+def test_the_pusht_job_picks_its_precision_by_the_cpu_and_the_robomimic_job_trains_fp32():
+    from lerobot_sdp.pusht.job import parse_args as pusht_args
+    from lerobot_sdp.robomimic.job import parse_args as robomimic_args
+
+    assert pusht_args([]).precision == "auto"  # bf16 measured equal on Push-T
+    assert robomimic_args([]).precision == "fp32"  # and not yet on Can
+    assert robomimic_args(["--precision", "auto"]).precision == "auto"

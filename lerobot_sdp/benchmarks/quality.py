@@ -316,7 +316,7 @@ class Plan:
     curve_every: int | None = None
     eval_jobs: int = 1
     jobs: int = 1  # runs at once: each training gets its share of the cores
-    precision: str = "auto"  # lerobot_cli.precision_flags
+    precision: str = "fp32"  # lerobot_cli.precision_flags
 
 
 def execute(run: Run, plan: Plan, echo: bool = True) -> dict:
@@ -536,9 +536,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--precision",
         choices=PRECISIONS,
-        default="auto",
-        help="every training's precision (a resumed run keeps its own); auto: bf16 autocast on a CPU "
-        "with native bf16 (avx512_bf16, AMX), else fp32",
+        default="fp32",
+        help="every training's precision (a resumed run keeps its own); fp32 by default, as every "
+        "published comparison; auto: bf16 autocast on a CPU with native bf16 (avx512_bf16, AMX)",
     )
     parser.add_argument("--status", action="store_true", help="print where each run stands and exit")
     parser.add_argument(
