@@ -74,6 +74,7 @@ CORE_TESTS = [
     "tests/test_lerobot_cli.py::test_native_bf16_is_read_from_the_cpus_flags",
     "tests/test_lerobot_cli.py::test_precision_flags_turn_bf16_on_for_cpu_trainings_on_native_bf16_only",
     "tests/test_lerobot_cli.py::test_a_new_training_gets_the_precision_and_a_resumed_one_keeps_its_own",
+    "tests/test_main_job.py::test_the_pusht_job_picks_its_precision_by_the_cpu_and_the_robomimic_job_trains_fp32",
     "tests/test_benchmarks_quality.py::test_runs_trained_at_once_share_the_cores",
     "tests/test_configuration_sdp.py",
     "tests/test_benchmarks_hardware_limit.py",
@@ -933,6 +934,10 @@ MUTANTS = [
       "at = {\"concurrent\": plan.jobs, \"precision\": plan.precision}",
       "at = {\"concurrent\": plan.jobs}",
       "quality --precision ignored"),
+    M("H17", "robomimic/job.py",
+      "precision=\"fp32\")",
+      "precision=\"auto\")",
+      "the robomimic job trains in bf16 by default, unmeasured against fp32's quality"),
 ]  # fmt: skip
 
 
