@@ -70,7 +70,7 @@ class MemoryTable:
         for key, delta in self.deltas.items():
             wanted = frame + delta
             padding[f"{key}_is_pad"] = (wanted < start) | (wanted >= end)
-            rows = torch.minimum(torch.maximum(wanted, start), end - 1)
+            rows = wanted.clamp(start, end - 1)
             batch[key] = self.columns[key][rows if self.row_of is None else self.row_of[rows]]
         batch.update(padding)
         keys = list(batch)

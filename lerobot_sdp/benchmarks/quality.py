@@ -328,8 +328,15 @@ def execute(run: Run, plan: Plan, echo: bool = True) -> dict:
     timing = json.loads(timing_file.read_text()) if timing_file.exists() else {"train_wall_s": 0.0}
     t0 = time.monotonic()
     train_args = [*plan.data_args, *plan.common, *run.policy_args]
-    at = {"concurrent": plan.jobs, "precision": plan.precision}
-    model_dir = train(root / "train", train_args, run.steps, root / "train.log", echo, **at)
+    model_dir = train(
+        root / "train",
+        train_args,
+        run.steps,
+        root / "train.log",
+        echo,
+        concurrent=plan.jobs,
+        precision=plan.precision,
+    )
     if not run.trains_as:
         timing["train_wall_s"] += time.monotonic() - t0
         timing_file.write_text(json.dumps(timing))
